@@ -1,0 +1,78 @@
+"""Environments: reward-free CMPs, batched, as TorchRL envs.
+
+``make_env(name, num_envs, seed=...)`` returns a ``TransformedEnv`` with batch size ``[num_envs]`` whose last
+transform is a ``StepCounter`` enforcing the horizon (``"step_count"`` ``[B, 1]``). ``make_task_env`` adds a
+:class:`~umrl.transforms.task_reward.TaskReward` with one hand-designed task per env copy.
+"""
+from __future__ import annotations
+
+import torch
+from torchrl.envs import EnvBase, StepCounter, TransformedEnv
+
+from umrl.envs.point_nav import PointNavEnv
+from umrl.envs.tasks import get_task_family
+from umrl.transforms.task_reward import TaskReward
+
+ENV_NAMES = ("point_nav", "half_cheetah", "ant")
+BACKENDS = ("default", "batched", "gym")
+
+
+def make_env(
+    name: str,
+    num_envs: int = 1,
+    *,
+    seed: int | None = None,
+    device: torch.device | str = "cpu",
+    horizon: int = 100,
+    backend: str = "default",
+) -> TransformedEnv:
+    """Build the reward-free CMP ``name`` with ``num_envs`` copies stepped as one batch.
+
+    Args:
+        name: one of :data:`ENV_NAMES`.
+        num_envs: batch size ``B`` (> 0).
+
+    Keyword Args:
+        seed: seeds the env's reset noise (MuJoCo envs); ``None`` leaves it unseeded.
+        device: device of the returned tensors.
+        horizon: episode length enforced by ``StepCounter`` (> 0).
+        backend: MuJoCo simulation path, ``"batched"`` (default: our batched MjData env) or ``"gym"`` (TorchRL's
+            wrapper over a gymnasium sync vector env, the reference). Ignored for point_nav.
+    """
+    if name not in ENV_NAMES:
+        raise ValueError(f"unknown env {name!r}; valid choices: {list(ENV_NAMES)}.")
+    if not isinstance(num_envs, int) or num_envs < 1:
+        raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}.")
+    if horizon < 1:
+        raise ValueError(f"horizon must be a positive integer, got {horizon!r}.")
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; valid choices: {list(BACKENDS)}.")
+    base: EnvBase
+    if name == "point_nav":
+        base = PointNavEnv(num_envs, device=device)
+    else:
+        from umrl.envs.mujoco import make_mujoco_env
+
+        base = make_mujoco_env(
+            name, num_envs, seed=seed, device=device, backend="batched" if backend == "default" else backend
+        )
+    env = TransformedEnv(base, StepCounter(max_steps=horizon))
+    if seed is not None:
+        env.set_seed(seed)
+    return env
+
+
+def make_task_env(name: str, tasks: torch.Tensor, **kwargs) -> TransformedEnv:
+    """``make_env(name, len(tasks), **kwargs)`` with env copy ``i`` rewarded by task ``tasks[i]``.
+
+    ``tasks`` has shape ``[B, task_dim]`` (see :mod:`umrl.envs.tasks`); change them later with
+    ``env.transform[-1].set_tasks(new_tasks)``.
+    """
+    family = get_task_family(name)
+    tasks = family.check_tasks(tasks)
+    env = make_env(name, tasks.shape[0], **kwargs)
+    env.append_transform(TaskReward(family, tasks))
+    return env
+
+
+__all__ = ["ENV_NAMES", "make_env", "make_task_env", "get_task_family"]

@@ -1,0 +1,66 @@
+"""The Gaussian MLP policy shared by MAML, VIME and the scratch baseline.
+
+``make_gaussian_policy`` builds a TorchRL :class:`~torchrl.modules.ProbabilisticActor`: a 2×300 ReLU MLP gives the
+mean, a learned state-independent log-std (initial std ``init_std``) gives the scale, and the action is drawn from an
+independent Normal (no tanh: the environments clip actions to their bounds, as rllab's MAML code did).
+
+Reads ``in_keys`` (concatenated on the last dim), writes ``"loc"``, ``"scale"``, ``"action"`` and
+``"action_log_prob"``, all with the input's batch shape.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule
+from torch import nn
+from torchrl.modules import MLP, IndependentNormal, ProbabilisticActor
+
+
+def make_gaussian_policy(
+    obs_dim: int,
+    act_dim: int,
+    *,
+    hidden: Sequence[int] = (300, 300),
+    init_std: float = 1.0,
+    in_keys: Sequence[str] = ("observation",),
+) -> ProbabilisticActor:
+    """Return a Gaussian MLP policy ``π(a|s)`` with a learned, state-independent std.
+
+    Args:
+        obs_dim: size of the concatenated ``in_keys`` features.
+        act_dim: action size.
+
+    Keyword Args:
+        hidden: hidden layer widths (ReLU).
+        init_std: initial standard deviation of every action dimension (> 0).
+        in_keys: observation keys, concatenated along the last dimension.
+    """
+    if obs_dim < 1 or act_dim < 1:
+        raise ValueError(f"obs_dim and act_dim must be positive, got {obs_dim} and {act_dim}.")
+    if init_std <= 0:
+        raise ValueError(f"init_std must be positive, got {init_std}.")
+    mlp = MLP(in_features=obs_dim, out_features=act_dim, num_cells=list(hidden), activation_class=nn.ReLU)
+    net = nn.Sequential(mlp, AddStateIndependentNormalScale(act_dim, init_value=math.log(init_std), scale_lb=1e-6))
+    module = TensorDictModule(_Concat(net) if len(in_keys) > 1 else net, in_keys=list(in_keys),
+                              out_keys=["loc", "scale"])
+    return ProbabilisticActor(
+        module,
+        in_keys=["loc", "scale"],
+        out_keys=["action"],
+        distribution_class=IndependentNormal,
+        return_log_prob=True,
+        log_prob_key="action_log_prob",
+    )
+
+
+class _Concat(nn.Module):
+    """Concatenates several inputs on the last dim before calling ``net``."""
+
+    def __init__(self, net: nn.Module):
+        super().__init__()
+        self.net = net
+
+    def forward(self, *inputs: torch.Tensor):
+        return self.net(torch.cat(inputs, dim=-1))
