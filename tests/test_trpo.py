@@ -1,0 +1,72 @@
+"""TRPOStep / conjugate_gradient: CG solves SPD systems; the line search honours the KL bound or restores exactly."""
+import pytest
+import torch
+from tensordict import TensorDict
+
+from umrl.optim.trpo import TRPOStep, conjugate_gradient
+
+
+def test_conjugate_gradient_solves_random_spd_system():
+    g = torch.Generator().manual_seed(0)
+    m = torch.randn(20, 20, generator=g, dtype=torch.float64)
+    a = m @ m.T / 20 + torch.eye(20, dtype=torch.float64)
+    b = torch.randn(20, generator=g, dtype=torch.float64)
+    x = conjugate_gradient(lambda v: a @ v, b, iters=40, residual_tol=1e-24)
+    torch.testing.assert_close(x, torch.linalg.solve(a, b), rtol=1e-8, atol=1e-8)
+
+
+def test_conjugate_gradient_rejects_matrix_rhs():
+    with pytest.raises(ValueError, match="1-D"):
+        conjugate_gradient(lambda v: v, torch.ones(2, 2))
+
+
+def _params(seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return TensorDict(
+        {"layer": {"weight": torch.nn.Parameter(torch.randn(3, 4, generator=g))},
+         "bias": torch.nn.Parameter(torch.randn(5, generator=g))},
+        batch_size=[],
+    )
+
+
+def _flat(params):
+    return torch.cat([p.detach().reshape(-1) for p in params.values(True, True)])
+
+
+def test_line_search_restores_parameters_bit_exactly_when_no_step_improves():
+    params = _params()
+    theta0 = _flat(params).clone()
+    c = torch.linspace(-1, 1, theta0.numel())
+
+    def closure():
+        delta = torch.cat([p.reshape(-1) for p in params.values(True, True)]) - theta0
+        # the linear term points downhill, the huge quadratic term makes every finite step worse
+        return (c * delta).sum() + 1e6 * delta.pow(2).sum(), delta.pow(2).sum()
+
+    info = TRPOStep(params, max_kl=0.01)(closure)
+    assert info["accepted"] == 0.0 and info["backtracks"] == 15
+    assert torch.equal(_flat(params), theta0)
+
+
+def test_line_search_accepts_improving_step_within_kl_bound():
+    params = _params(1)
+    theta0 = _flat(params).clone()
+    c = torch.linspace(-1, 1, theta0.numel())
+    curvature = torch.linspace(1.0, 3.0, theta0.numel())
+
+    def delta():
+        return torch.cat([p.reshape(-1) for p in params.values(True, True)]) - theta0
+
+    def model_kl():
+        return 0.5 * (curvature * delta().pow(2)).sum()
+
+    def closure():  # measured KL is 4x the quadratic model: the first trials must be rejected
+        return (c * delta()).sum(), 4 * model_kl()
+
+    info = TRPOStep(params, max_kl=0.01, cg_iters=30)(closure, hvp_closure=model_kl)
+    assert info["accepted"] == 1.0 and info["backtracks"] > 1
+    assert 0 < info["kl"] <= 0.01 and info["improvement"] > 0
+    step = theta0 - _flat(params)
+    # natural-gradient direction: H^{-1} c with H = diag(curvature)
+    torch.testing.assert_close(step / step.norm(), (c / curvature) / (c / curvature).norm(), rtol=1e-4, atol=1e-5)
+    assert 4 * 0.5 * (curvature * step.pow(2)).sum() <= 0.01 + 1e-6

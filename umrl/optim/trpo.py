@@ -1,0 +1,206 @@
+"""Trust-region policy optimisation step on TensorDict parameters (Schulman et al., 2015).
+
+TorchRL has no TRPO; this module is the one used by MAML's meta-update (``umrl.objectives.maml``) and by VIME's
+policy updates. It is agnostic to what the surrogate is: it only needs
+
+* ``closure() -> (surrogate_loss, kl)``: two differentiable scalars evaluated at the *current* values of the
+  parameters (the loss to minimise, and the mean KL divergence between the policy that collected the data and the
+  current one). It is called once with gradients enabled to build the step and once per line-search trial (there
+  with ``torch.no_grad`` unless the closure needs gradients itself, see ``line_search_grad``).
+* optionally ``hvp_closure() -> kl``: the KL whose Hessian-vector products drive conjugate gradient, e.g. the same
+  KL on a subsample of the batch. Defaults to the ``kl`` returned by ``closure``.
+
+Example:
+    >>> policy = torch.nn.Linear(3, 2)
+    >>> params = TensorDict.from_module(policy)
+    >>> trpo = TRPOStep(params, max_kl=0.01)
+    >>> info = trpo(lambda: (surrogate(policy), kl(policy)))  # doctest: +SKIP
+    >>> info["accepted"], info["kl"], info["improvement"]  # doctest: +SKIP
+
+The conjugate-gradient system is ``(H + damping * I) x = g`` with ``H`` the KL Hessian at the current parameters
+(exact when ``kl`` is taken through MAML's inner update, since the KL's gradient vanishes there). The full step is
+scaled so that the quadratic KL model equals ``max_kl``; the backtracking line search then shrinks it by
+``backtrack_ratio`` until the surrogate improves *and* the measured KL is within ``max_kl``. If no trial is accepted the
+parameters are restored bit-exactly from a saved copy.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import torch
+from tensordict import TensorDictBase
+
+__all__ = ["conjugate_gradient", "TRPOStep"]
+
+
+def conjugate_gradient(
+    matvec: Callable[[torch.Tensor], torch.Tensor],
+    b: torch.Tensor,
+    *,
+    iters: int = 10,
+    residual_tol: float = 1e-10,
+) -> torch.Tensor:
+    """Approximately solve ``A x = b`` for symmetric positive-definite ``A`` given only ``matvec(v) = A v``.
+
+    Args:
+        matvec: function mapping a vector of shape ``b.shape`` to ``A @ v``.
+        b: right-hand side, a 1-D tensor.
+
+    Keyword Args:
+        iters: maximum number of iterations (matvec calls).
+        residual_tol: stop early once the squared residual norm falls below it.
+
+    Returns:
+        ``x`` with the shape of ``b``.
+    """
+    if b.dim() != 1:
+        raise ValueError(f"conjugate_gradient expects a 1-D right-hand side, got shape {tuple(b.shape)}.")
+    x = torch.zeros_like(b)
+    r = b.clone()
+    p = b.clone()
+    rr = r.dot(r)
+    for _ in range(iters):
+        if rr <= residual_tol:
+            break
+        ap = matvec(p)
+        alpha = rr / p.dot(ap)
+        x = x + alpha * p
+        r = r - alpha * ap
+        rr_new = r.dot(r)
+        p = r + (rr_new / rr) * p
+        rr = rr_new
+    return x
+
+
+class TRPOStep:
+    """One natural-gradient step with a KL trust region, applied in place to a TensorDict of parameters.
+
+    Args:
+        params: TensorDict whose leaves are the tensors to optimise (``TensorDict.from_module(policy)`` shares
+            storage with the module, so updating ``params`` updates the module). Leaves must require grad.
+
+    Keyword Args:
+        max_kl: trust-region radius on the mean KL (default 0.01).
+        damping: Tikhonov damping added to the Hessian-vector product (default 1e-5).
+        cg_iters: conjugate-gradient iterations (default 10).
+        backtrack_ratio: step shrink factor per line-search trial (default 0.8).
+        max_backtracks: number of line-search trials (default 15).
+        line_search_grad: evaluate the closure with gradients enabled during the line search (needed when the
+            closure itself differentiates, e.g. MAML's inner step). Default ``False`` (``torch.no_grad``).
+
+    Calling the step returns a dict of floats: ``surrogate_before``, ``surrogate_after``, ``improvement``
+    (before − after, positive is better), ``kl`` (measured at the accepted point, 0 if rejected), ``accepted``
+    (1.0/0.0), ``backtracks`` (trials evaluated), ``step_norm`` and ``grad_norm``.
+    """
+
+    def __init__(
+        self,
+        params: TensorDictBase,
+        *,
+        max_kl: float = 0.01,
+        damping: float = 1e-5,
+        cg_iters: int = 10,
+        backtrack_ratio: float = 0.8,
+        max_backtracks: int = 15,
+        line_search_grad: bool = False,
+    ) -> None:
+        if max_kl <= 0 or damping < 0 or cg_iters < 1 or not 0 < backtrack_ratio < 1 or max_backtracks < 1:
+            raise ValueError(
+                "TRPOStep needs max_kl > 0, damping >= 0, cg_iters >= 1, 0 < backtrack_ratio < 1 and "
+                f"max_backtracks >= 1; got {max_kl=}, {damping=}, {cg_iters=}, {backtrack_ratio=}, {max_backtracks=}."
+            )
+        self.params = params
+        self.leaves = list(params.values(include_nested=True, leaves_only=True))
+        if not self.leaves or not all(p.requires_grad for p in self.leaves):
+            raise ValueError("TRPOStep needs a non-empty TensorDict of parameters that all require grad.")
+        self.max_kl = max_kl
+        self.damping = damping
+        self.cg_iters = cg_iters
+        self.backtrack_ratio = backtrack_ratio
+        self.max_backtracks = max_backtracks
+        self.line_search_grad = line_search_grad
+
+    def _flat(self, tensors) -> torch.Tensor:
+        return torch.cat([t.reshape(-1) for t in tensors])
+
+    def _grad(self, scalar: torch.Tensor, **kwargs) -> torch.Tensor:
+        grads = torch.autograd.grad(scalar, self.leaves, allow_unused=True, **kwargs)
+        return self._flat(torch.zeros_like(p) if g is None else g for p, g in zip(self.leaves, grads))
+
+    @torch.no_grad()
+    def _set(self, saved: list[torch.Tensor], step: torch.Tensor | None) -> None:
+        """Write ``saved - step`` into the parameters (``step=None`` restores ``saved`` exactly)."""
+        offset = 0
+        for p, p0 in zip(self.leaves, saved):
+            if step is None:
+                p.copy_(p0)
+            else:
+                n = p.numel()
+                p.copy_(p0 - step[offset : offset + n].view_as(p))
+                offset += n
+
+    def hvp_builder(self, kl: torch.Tensor) -> Callable[[torch.Tensor], torch.Tensor]:
+        """Damped KL Hessian-vector product ``v -> (H + damping I) v``.
+
+        The KL's gradient graph is built once (``create_graph=True``) and reused by every call, which saves a
+        forward/backward through the KL per conjugate-gradient iteration.
+        """
+        flat_grad_kl = self._grad(kl, create_graph=True)
+        if not flat_grad_kl.requires_grad:
+            raise ValueError("The KL's gradient does not depend on the parameters: is it computed from them?")
+
+        def hvp(v: torch.Tensor) -> torch.Tensor:
+            return self._grad(flat_grad_kl.dot(v), retain_graph=True) + self.damping * v
+
+        return hvp
+
+    def __call__(
+        self,
+        closure: Callable[[], tuple[torch.Tensor, torch.Tensor]],
+        hvp_closure: Callable[[], torch.Tensor] | None = None,
+    ) -> dict[str, float]:
+        with torch.enable_grad():
+            loss, kl = closure()
+            if loss.dim() != 0 or kl.dim() != 0:
+                raise ValueError(f"closure must return two scalars, got shapes {loss.shape} and {kl.shape}.")
+            loss_before = loss.item()
+            if not math.isfinite(loss_before):
+                raise ValueError(f"TRPO surrogate is not finite ({loss_before}); check rewards and log-probs.")
+            grad = self._grad(loss, retain_graph=hvp_closure is None)
+            hvp = self.hvp_builder(kl if hvp_closure is None else hvp_closure())
+            direction = conjugate_gradient(hvp, grad, iters=self.cg_iters)
+            shs = direction.dot(hvp(direction)).item()
+        del hvp, kl, loss
+        info = {
+            "surrogate_before": loss_before,
+            "grad_norm": grad.norm().item(),
+            "surrogate_after": loss_before,
+            "improvement": 0.0,
+            "kl": 0.0,
+            "accepted": 0.0,
+            "backtracks": 0.0,
+            "step_norm": 0.0,
+        }
+        if not math.isfinite(shs) or shs <= 0:
+            return info
+        full_step = math.sqrt(2.0 * self.max_kl / (shs + 1e-8)) * direction
+        saved = [p.detach().clone() for p in self.leaves]
+        grad_mode = torch.enable_grad() if self.line_search_grad else torch.no_grad()
+        for i in range(self.max_backtracks):
+            step = self.backtrack_ratio**i * full_step
+            self._set(saved, step)
+            with grad_mode:
+                new_loss, new_kl = (t.detach().item() for t in closure())
+            info["backtracks"] = float(i + 1)
+            if math.isfinite(new_loss) and new_loss < loss_before and new_kl <= self.max_kl:
+                info.update(
+                    surrogate_after=new_loss,
+                    improvement=loss_before - new_loss,
+                    kl=new_kl,
+                    accepted=1.0,
+                    step_norm=step.norm().item(),
+                )
+                return info
+        self._set(saved, None)
+        return info
