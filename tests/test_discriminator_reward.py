@@ -1,0 +1,95 @@
+"""DiscriminatorReward: r = log D(z|s') + log K, no grad, relabelling with the current discriminator."""
+import math
+
+import pytest
+import torch
+from torchrl.envs.utils import check_env_specs
+
+from umrl.envs import make_env
+from umrl.modules.discriminator import make_discriminator
+from umrl.transforms.discriminator_reward import DiscriminatorReward
+from umrl.transforms.skill import SkillTransform
+
+K = 6
+
+
+def by_hand(discriminator, observation, skill):
+    logits = discriminator.module(observation)
+    return torch.log_softmax(logits, -1).gather(-1, skill.argmax(-1, keepdim=True)) + math.log(K)
+
+
+def reward_env(discriminator, num_envs=4, **kwargs):
+    env = make_env("point_nav", num_envs, seed=0).append_transform(SkillTransform(K))
+    return env.append_transform(DiscriminatorReward(discriminator, K, **kwargs))
+
+
+def test_check_env_specs_single_and_batched():
+    disc = make_discriminator(2, K, hidden=(16,), seed=0)
+    check_env_specs(reward_env(disc, num_envs=1))
+    check_env_specs(reward_env(disc, num_envs=5))
+
+
+def test_reward_matches_hand_computation_on_next_observation():
+    torch.manual_seed(0)
+    disc = make_discriminator(2, K, hidden=(16, 16))
+    td = reward_env(disc).rollout(5)
+    expected = by_hand(disc, td["next", "observation"], td["skill"])
+    torch.testing.assert_close(td["next", "reward"], expected)
+    assert not td["next", "reward"].requires_grad
+    # s_t would give a different reward: the first observation is the origin for every copy
+    assert not torch.allclose(expected, by_hand(disc, td["observation"], td["skill"]))
+
+
+def test_observation_key_s_t():
+    torch.manual_seed(0)
+    disc = make_discriminator(2, K, hidden=(16,))
+    td = reward_env(disc, observation_key="observation").rollout(4)
+    torch.testing.assert_close(td["next", "reward"], by_hand(disc, td["observation"], td["skill"]))
+
+
+def test_forward_relabels_with_current_discriminator():
+    torch.manual_seed(0)
+    disc = make_discriminator(2, K, hidden=(16,))
+    transform = DiscriminatorReward(disc, K)
+    td = reward_env(disc).rollout(5).reshape(-1)
+    td["next", "env_reward"] = torch.randn(td.shape[0], 1)
+    env_reward = td["next", "env_reward"].clone()
+    stale = td["next", "reward"].clone()
+    with torch.no_grad():  # the discriminator is trained elsewhere: the transform must see the new weights
+        for p in disc.parameters():
+            p.add_(torch.randn_like(p))
+    out = transform(td)
+    assert out is td
+    fresh = by_hand(disc, td["next", "observation"], td["skill"])
+    torch.testing.assert_close(td["next", "reward"], fresh)
+    assert not torch.allclose(fresh, stale)
+    torch.testing.assert_close(td["next", "env_reward"], env_reward)
+
+
+def test_seeded_random_discriminator_is_reproducible_and_keeps_global_rng():
+    torch.manual_seed(5)
+    state = torch.get_rng_state()
+    a = make_discriminator(2, K, seed=3).requires_grad_(False)
+    assert torch.equal(torch.get_rng_state(), state)
+    b = make_discriminator(2, K, seed=3)
+    c = make_discriminator(2, K, seed=4)
+    obs = torch.randn(10, 2)
+    assert torch.equal(a.module(obs), b.module(obs))
+    assert not torch.allclose(a.module(obs), c.module(obs))
+    # unseeded calls draw different weights
+    assert not torch.allclose(make_discriminator(2, K).module(obs), make_discriminator(2, K).module(obs))
+    td = reward_env(a).rollout(3)  # a frozen discriminator works the same way
+    torch.testing.assert_close(td["next", "reward"], by_hand(a, td["next", "observation"], td["skill"]))
+
+
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (lambda disc: make_discriminator(2, 1), "num_skills"),
+        (lambda disc: DiscriminatorReward(disc, 1), "num_skills"),
+        (lambda disc: DiscriminatorReward(disc, K + 1).pseudo_reward(torch.zeros(3, 2), torch.zeros(3, K)), "expected"),
+    ],
+)
+def test_bad_inputs(call, match):
+    with pytest.raises(ValueError, match=match):
+        call(make_discriminator(2, K, hidden=(8,)))

@@ -1,0 +1,58 @@
+"""Skill discriminator D(z|s): an MLP from the full observation to logits over K skills."""
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Sequence
+
+import torch
+from tensordict.nn import TensorDictModule
+from torchrl.modules import MLP
+
+__all__ = ["make_discriminator"]
+
+
+def make_discriminator(
+    obs_dim: int,
+    num_skills: int,
+    *,
+    hidden: Sequence[int] = (300, 300),
+    seed: int | None = None,
+    in_key="observation",
+    out_key="skill_logits",
+) -> TensorDictModule:
+    """Builds D(z|s) as a ReLU MLP ``obs_dim -> hidden -> num_skills``.
+
+    Args:
+        obs_dim (int): observation size.
+        num_skills (int): K >= 2, the number of logits.
+
+    Keyword Args:
+        hidden (sequence of int): hidden layer widths. Defaults to ``(300, 300)`` (PROTOCOL.md).
+        seed (int, optional): if given, the weights are initialised from ``torch.manual_seed(seed)`` inside a forked
+            RNG (the global RNG is untouched), so a frozen random discriminator (UML-random) is reproducible.
+        in_key / out_key: tensordict keys. Defaults to ``"observation"`` -> ``"skill_logits"`` [*B, K].
+
+    Returns:
+        a :class:`~tensordict.nn.TensorDictModule` reading ``in_key`` [*B, obs_dim], writing ``out_key`` [*B, K].
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> d = make_discriminator(2, 50, seed=0).requires_grad_(False)  # a frozen random discriminator
+        >>> d(TensorDict({"observation": torch.zeros(3, 2)}, [3]))["skill_logits"].shape
+        torch.Size([3, 50])
+    """
+    if obs_dim < 1:
+        raise ValueError(f"obs_dim must be >= 1, got {obs_dim}.")
+    if num_skills < 2:
+        raise ValueError(f"num_skills must be >= 2, got {num_skills}.")
+    # Seeded: draw the weights from a forked RNG; unseeded: consume the global RNG as any torch layer does.
+    with torch.random.fork_rng(devices=[]) if seed is not None else contextlib.nullcontext():
+        if seed is not None:
+            torch.manual_seed(seed)
+        net = MLP(
+            in_features=obs_dim,
+            out_features=num_skills,
+            num_cells=list(hidden),
+            activation_class=torch.nn.ReLU,
+        )
+    return TensorDictModule(net, in_keys=[in_key], out_keys=[out_key])

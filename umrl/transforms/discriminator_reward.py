@@ -1,0 +1,107 @@
+"""DIAYN pseudo-reward r_z(s) = log D(z|s) - log p(z) with a uniform prior p(z) = 1/K.
+
+Which state: by default the reward of transition (s_t, a_t, s_{t+1}) scores the state the action led to,
+s_{t+1} = ``("next", "observation")`` (as DIAYN's reference code and UMRL's r_z(s) on visited states). The
+discriminator loss in :class:`umrl.objectives.diayn.DIAYNLoss` uses the same key, so training and reward agree. Pass
+``observation_key="observation"`` to score s_t instead. The skill is read from the root ``"skill"`` (the skill that
+produced a_t; identical to ``("next", "skill")`` within an episode).
+
+The reward overwrites ``("next", "reward")`` (zero in the reward-free CMPs); the env's own reward, when it has one,
+stays under ``("next", "env_reward")``.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey, unravel_key
+from torchrl.data import Composite, Unbounded
+from torchrl.envs.transforms import Transform
+
+__all__ = ["DiscriminatorReward"]
+
+
+class DiscriminatorReward(Transform):
+    """Writes r = log_softmax(D(s))[z] + log K into ``("next", reward_key)``, computed under ``torch.no_grad``.
+
+    In an env (``_step``) it scores each new transition; called on a replay sample (``forward``) it *relabels* the
+    batch with the discriminator's current weights (stale pseudo-rewards in a buffer are a bug). The module is held
+    by reference: training it elsewhere changes the rewards this transform writes. A frozen random discriminator
+    (``make_discriminator(..., seed=s).requires_grad_(False)``) gives UML-random's rewards.
+
+    Args:
+        discriminator (TensorDictModuleBase): one in_key (observation, [*B, obs_dim]), one out_key (logits [*B, K]).
+        num_skills (int): K; the prior is uniform, log p(z) = -log K.
+
+    Keyword Args:
+        observation_key (NestedKey): the state fed to D. Defaults to ``("next", "observation")`` (s_{t+1}).
+        skill_key (NestedKey): one-hot skill [*B, K]. Defaults to ``"skill"``.
+        reward_key (NestedKey): written under ``"next"``. Defaults to ``"reward"``.
+
+    Examples:
+        >>> from umrl.envs import make_env
+        >>> from umrl.modules.discriminator import make_discriminator
+        >>> from umrl.transforms.skill import SkillTransform
+        >>> disc = make_discriminator(2, 10)
+        >>> env = make_env("point_nav", num_envs=4, seed=0)
+        >>> env = env.append_transform(SkillTransform(10)).append_transform(DiscriminatorReward(disc, 10))
+        >>> env.rollout(3)["next", "reward"].shape
+        torch.Size([4, 3, 1])
+    """
+
+    def __init__(
+        self,
+        discriminator: TensorDictModuleBase,
+        num_skills: int,
+        *,
+        observation_key: NestedKey = ("next", "observation"),
+        skill_key: NestedKey = "skill",
+        reward_key: NestedKey = "reward",
+    ):
+        if num_skills < 2:
+            raise ValueError(f"num_skills must be >= 2, got {num_skills}.")
+        if len(discriminator.in_keys) != 1 or len(discriminator.out_keys) != 1:
+            raise ValueError(
+                "the discriminator must read one key (the observation) and write one key (the logits); got "
+                f"in_keys={discriminator.in_keys}, out_keys={discriminator.out_keys}."
+            )
+        super().__init__()
+        self.discriminator = discriminator
+        self.num_skills = num_skills
+        self.observation_key = unravel_key(observation_key)
+        self.skill_key = unravel_key(skill_key)
+        self.reward_key = unravel_key(reward_key)
+
+    def pseudo_reward(self, observation: torch.Tensor, skill: torch.Tensor) -> torch.Tensor:
+        """log D(z|s) + log K for observations [*B, obs_dim] and one-hot skills [*B, K] -> [*B, 1], no grad."""
+        if skill.shape[-1] != self.num_skills:
+            raise ValueError(f"skill has {skill.shape[-1]} entries in its last dim, expected {self.num_skills}.")
+        with torch.no_grad():
+            batch = observation.shape[:-1]
+            td = TensorDict({self.discriminator.in_keys[0]: observation}, batch_size=batch)
+            logits = self.discriminator(td).get(self.discriminator.out_keys[0])
+            log_prob = torch.log_softmax(logits, dim=-1)
+            return (log_prob * skill).sum(-1, keepdim=True) + math.log(self.num_skills)
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        key = self.observation_key
+        if isinstance(key, tuple) and key[0] == "next":
+            observation = next_tensordict.get(key[1:])
+        else:
+            observation = tensordict.get(key)
+        next_tensordict.set(self.reward_key, self.pseudo_reward(observation, tensordict.get(self.skill_key)))
+        return next_tensordict
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Relabels a batch of transitions (e.g. a replay sample) in place with the current discriminator."""
+        reward = self.pseudo_reward(tensordict.get(self.observation_key), tensordict.get(self.skill_key))
+        tensordict.set(unravel_key(("next", self.reward_key)), reward)
+        return tensordict
+
+    def transform_reward_spec(self, reward_spec: Composite) -> Composite:
+        reward_spec[self.reward_key] = Unbounded(
+            shape=(*reward_spec.shape, 1), dtype=torch.float32, device=reward_spec.device
+        )
+        return reward_spec
