@@ -1,0 +1,169 @@
+"""Vanilla policy gradient on batches of per-task trajectories: mask, linear feature baseline, GAE, surrogate.
+
+Every function works on a TensorDict (or tensors) whose batch shape ends with ``[..., N, H]``: any leading dims
+(typically ``[T]`` tasks) are independent problems, ``N`` trajectories of ``H`` steps each, as returned by
+:func:`umrl.rollout.collect`. Keys read: ``"observation"`` ``[..., N, H, obs_dim]``, ``"step_count"``
+``[..., N, H, 1]``, ``("next", "reward")`` / ``("next", "done")`` ``[..., N, H, 1]`` and ``"mask"`` ``[..., N, H]``.
+
+Trajectories end at their first ``done``; the steps a batched env takes after that (it auto-resets) are masked out.
+The baseline regresses the discounted return-to-go of the *finite-horizon* problem on features that include time,
+so the value after the horizon is zero by definition: a time-limit ``done`` is a true end here (no bootstrap),
+exactly like rllab's ``LinearFeatureBaseline`` + GAE that MAML-RL used.
+
+Example:
+    >>> td = collect(env, policy, num_tasks=T, horizon=H)          # [T, N, H]
+    >>> td = compute_advantages(td, gamma=0.99, lmbda=1.0)        # adds "state_value", "value_target", "advantage"
+    >>> log_prob = policy.get_dist(td).log_prob(td["action"])     # [T, N, H]
+    >>> loss = vpg_loss(log_prob, td)                             # [T]: one loss per task
+"""
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.objectives.value.functional import vec_generalized_advantage_estimate
+
+__all__ = [
+    "trajectory_mask",
+    "baseline_features",
+    "fit_linear_baseline",
+    "compute_advantages",
+    "vpg_loss",
+    "episode_returns",
+]
+
+
+def trajectory_mask(done: torch.Tensor) -> torch.Tensor:
+    """``[..., H]`` bool: step ``t`` belongs to the first episode (no ``done`` strictly before ``t``).
+
+    Args:
+        done: ``("next", "done")`` of shape ``[..., H, 1]``.
+    """
+    if done.shape[-1] != 1:
+        raise ValueError(f"done must have a trailing singleton dim [..., H, 1], got {tuple(done.shape)}.")
+    done = done.squeeze(-1).long()
+    return (done.cumsum(-1) - done) == 0
+
+
+def baseline_features(td: TensorDictBase, *, time_scale: float = 100.0, obs_clip: float = 10.0) -> torch.Tensor:
+    """Features ``(o, o², t, t², t³, 1)`` of shape ``[..., N, H, 2 * obs_dim + 4]`` (rllab's linear baseline).
+
+    ``o`` is the observation clipped to ``±obs_clip``; ``t = step_count / time_scale``.
+    """
+    obs = td["observation"].clamp(-obs_clip, obs_clip)
+    t = td["step_count"].to(obs.dtype) / time_scale
+    return torch.cat([obs, obs.pow(2), t, t.pow(2), t.pow(3), torch.ones_like(t)], dim=-1)
+
+
+def fit_linear_baseline(
+    features: torch.Tensor,
+    targets: torch.Tensor,
+    mask: torch.Tensor,
+    *,
+    reg_coeff: float = 1e-5,
+    max_tries: int = 5,
+) -> torch.Tensor:
+    """Ridge least squares of ``targets`` on ``features``, one fit per leading index, over all valid ``N × H`` steps.
+
+    Solved in float64 from the normal equations ``(XᵀX + c I) w = Xᵀy``; if the solution is not finite the ridge
+    ``c`` grows ×10 (at most ``max_tries`` times) and then a ``FloatingPointError`` is raised — never a silent
+    garbage baseline.
+
+    Args:
+        features: ``[..., N, H, F]``.
+        targets: ``[..., N, H, 1]`` (discounted returns-to-go).
+        mask: ``[..., N, H]`` bool, the steps to fit.
+
+    Returns:
+        fitted values ``[..., N, H, 1]`` (same dtype as ``features``).
+    """
+    if features.shape[:-1] != targets.shape[:-1] or features.shape[:-1] != mask.shape:
+        raise ValueError(
+            f"shape mismatch: features {tuple(features.shape)}, targets {tuple(targets.shape)}, mask {tuple(mask.shape)}"
+            " must share [..., N, H]."
+        )
+    lead = features.shape[:-3]
+    num_features = features.shape[-1]
+    w_mask = mask.unsqueeze(-1).to(torch.float64)
+    x = (features.to(torch.float64) * w_mask).reshape(*lead, -1, num_features)
+    y = (targets.to(torch.float64) * w_mask).reshape(*lead, -1, 1)
+    xtx = x.transpose(-1, -2) @ x
+    xty = x.transpose(-1, -2) @ y
+    eye = torch.eye(num_features, dtype=torch.float64, device=x.device)
+    coeff = reg_coeff
+    for _ in range(max_tries):
+        weights = torch.linalg.solve(xtx + coeff * eye, xty)
+        if torch.isfinite(weights).all():
+            return (features.to(torch.float64) @ weights.unsqueeze(-3)).to(features.dtype)
+        coeff *= 10
+    raise FloatingPointError(
+        f"linear baseline fit is not finite even with ridge {coeff / 10:g}: the observations or rewards contain "
+        "NaN/inf or are enormous; check the env and the reward transform."
+    )
+
+
+def compute_advantages(
+    td: TensorDictBase,
+    *,
+    gamma: float = 0.99,
+    lmbda: float = 1.0,
+    normalize: bool = True,
+    reg_coeff: float = 1e-5,
+    time_scale: float = 100.0,
+) -> TensorDictBase:
+    """Fit the linear feature baseline and write GAE advantages, in place.
+
+    Reads ``"observation"``, ``"step_count"``, ``("next", "reward")``, ``("next", "done")`` and ``"mask"`` (computed
+    from ``done`` if absent). Writes ``"value_target"`` (discounted return-to-go), ``"state_value"`` (baseline) and
+    ``"advantage"``, each ``[..., N, H, 1]`` and zero on masked steps. With ``normalize`` the advantages of each
+    leading index are standardised over its valid steps (rllab's ``center_adv``).
+    """
+    if td.batch_dims < 2:
+        raise ValueError(f"expected a batch [..., N, H] of trajectories, got batch size {tuple(td.batch_size)}.")
+    done = td["next", "done"]
+    if "mask" not in td.keys():
+        td.set("mask", trajectory_mask(done))
+    mask = td["mask"]
+    valid = mask.unsqueeze(-1)
+    reward = td["next", "reward"] * valid
+    ends = done | ~valid  # every step after the first episode is its own (zero-reward) end
+    zeros = torch.zeros_like(reward)
+    _, returns = vec_generalized_advantage_estimate(gamma, 1.0, zeros, zeros, reward, ends, ends, time_dim=-2)
+    values = fit_linear_baseline(
+        baseline_features(td, time_scale=time_scale), returns, mask, reg_coeff=reg_coeff
+    ) * valid
+    next_values = torch.cat([values[..., 1:, :], torch.zeros_like(values[..., :1, :])], dim=-2)
+    advantage, _ = vec_generalized_advantage_estimate(gamma, lmbda, values, next_values, reward, ends, ends, time_dim=-2)
+    advantage = advantage * valid
+    if normalize:
+        dims = tuple(range(-3, 0))
+        count = valid.sum(dims, keepdim=True).clamp_min(1)
+        mean = advantage.sum(dims, keepdim=True) / count
+        var = ((advantage - mean).pow(2) * valid).sum(dims, keepdim=True) / count
+        advantage = (advantage - mean) / (var.sqrt() + 1e-8) * valid
+    td.set("value_target", returns * valid)
+    td.set("state_value", values)
+    td.set("advantage", advantage)
+    return td
+
+
+def vpg_loss(log_prob: torch.Tensor, td: TensorDictBase) -> torch.Tensor:
+    """Vanilla policy-gradient surrogate ``−mean_valid(log π(a|s) · A)`` per leading index.
+
+    Args:
+        log_prob: ``[..., N, H]`` log-probabilities of ``td["action"]`` under the policy being differentiated.
+        td: batch ``[..., N, H]`` with ``"advantage"`` ``[..., N, H, 1]`` and ``"mask"`` ``[..., N, H]``.
+
+    Returns:
+        ``[...]`` — e.g. one loss per task for a ``[T, N, H]`` batch (a scalar for ``[N, H]``).
+    """
+    mask = td["mask"]
+    if log_prob.shape != mask.shape:
+        raise ValueError(f"log_prob has shape {tuple(log_prob.shape)}, expected the batch's [..., N, H] {tuple(mask.shape)}.")
+    weights = mask.to(log_prob.dtype)
+    return -(log_prob * td["advantage"].squeeze(-1) * weights).sum((-2, -1)) / weights.sum((-2, -1)).clamp_min(1)
+
+
+def episode_returns(td: TensorDictBase) -> torch.Tensor:
+    """Undiscounted return of each trajectory's first episode, ``[..., N]``."""
+    mask = td["mask"] if "mask" in td.keys() else trajectory_mask(td["next", "done"])
+    return (td["next", "reward"].squeeze(-1) * mask).sum(-1)
