@@ -1,0 +1,319 @@
+"""Batched MuJoCo CMPs: ``B`` ``MjData`` copies of gymnasium's own v5 models, stepped as one TorchRL env.
+
+:class:`BatchedMujocoEnv` reproduces gymnasium's ``HalfCheetah-v5`` / ``Ant-v5`` semantics exactly (same XML files,
+frame skip, reset noise, reward terms, info values, Ant's healthy termination and clipped contact forces) without
+gymnasium in the step loop. Each copy is advanced by the same calls gymnasium makes (``mj_step(nstep=frame_skip)``,
+plus ``mj_rnePostConstraint`` where contact forces are observed), so trajectories match gymnasium's bit for bit; the
+copies are split over a thread pool (``mj_step`` releases the GIL).
+
+Keys (``B`` = batch size, all float32 unless noted): ``"observation"`` ``[B, obs_dim]``, ``"action"`` ``[B, act_dim]``
+in ``[-1, 1]``, ``("next", "reward")`` ``[B, 1]`` zeros (reward-free CMP), ``"env_reward"`` ``[B, 1]`` gymnasium's
+reward (0 at reset), the physics keys of :data:`PHYSICS_KEYS` (0 at reset for velocities and reward terms), and
+``"done"``/``"terminated"``/``"truncated"`` ``[B, 1]`` bool. No time limit: wrap with ``StepCounter``.
+"""
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import gymnasium
+import mujoco
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+ASSETS_DIR = os.path.join(os.path.dirname(gymnasium.__file__), "envs", "mujoco", "assets")
+
+# Width of each physics key written at every step and reset (see CONTRACTS.md).
+PHYSICS_KEYS: dict[str, dict[str, int]] = {
+    "half_cheetah": {"x_position": 1, "x_velocity": 1},
+    "ant": {"xy_position": 2, "x_velocity": 1, "reward_survive": 1, "reward_contact": 1},
+}
+
+_QSTATE = mujoco.mjtState.mjSTATE_QPOS | mujoco.mjtState.mjSTATE_QVEL
+_MIN_COPIES_PER_THREAD = 16
+
+
+@dataclass(frozen=True)
+class MujocoModelSpec:
+    """What identifies one of our MuJoCo CMPs: its gymnasium id and kwargs, and the model file gymnasium loads."""
+
+    gym_id: str
+    xml_file: str
+    frame_skip: int = 5
+    reset_noise_scale: float = 0.1
+    gym_kwargs: dict = field(default_factory=dict)
+
+
+MODEL_SPECS: dict[str, MujocoModelSpec] = {
+    "half_cheetah": MujocoModelSpec("HalfCheetah-v5", "half_cheetah.xml"),
+    "ant": MujocoModelSpec("Ant-v5", "ant.xml", gym_kwargs={"exclude_current_positions_from_observation": False}),
+}
+
+
+def physics_spec(name: str, num_envs: int, device: torch.device | str) -> Composite:
+    """Specs of ``"env_reward"`` and the physics keys of env ``name`` (float32, ``[num_envs, width]``)."""
+    widths = {"env_reward": 1, **PHYSICS_KEYS[name]}
+    return Composite(
+        {key: Unbounded((num_envs, w), dtype=torch.float32, device=device) for key, w in widths.items()},
+        shape=(num_envs,),
+        device=device,
+    )
+
+
+class BatchedMujocoEnv(EnvBase):
+    """``B`` copies of a gymnasium v5 MuJoCo model stepped as one batch (base class; see the module docstring).
+
+    Subclasses set :attr:`NAME` and implement :meth:`_observe` (the observation from the state buffers) and
+    :meth:`_step_values` (env reward, physics keys and termination).
+
+    Args:
+        num_envs: batch size ``B`` (> 0).
+
+    Keyword Args:
+        seed: seeds the reset noise (numpy ``PCG64``, like gymnasium's ``np_random``); ``None`` draws fresh entropy.
+        device: device of the returned tensors (physics runs on CPU).
+        num_threads: threads stepping the copies; default: the CPUs this process may use, with at least
+            16 copies per thread.
+    """
+
+    NAME: str = ""
+    _observe_contacts = False
+    batch_locked = True
+
+    def __init__(
+        self,
+        num_envs: int,
+        *,
+        seed: int | None = None,
+        device: torch.device | str = "cpu",
+        num_threads: int | None = None,
+    ):
+        if not isinstance(num_envs, int) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}.")
+        super().__init__(device=device, batch_size=torch.Size([num_envs]))
+        spec = MODEL_SPECS[self.NAME]
+        self.model = mujoco.MjModel.from_xml_path(os.path.join(ASSETS_DIR, spec.xml_file))
+        self._frame_skip = spec.frame_skip  # not `frame_skip`: EnvBase would append a FrameSkipTransform
+        self.dt = self.model.opt.timestep * self._frame_skip  # same float as gymnasium's env.dt
+        self.reset_noise_scale = spec.reset_noise_scale
+        self._datas = [mujoco.MjData(self.model) for _ in range(num_envs)]
+        self._init_qpos = self._datas[0].qpos.copy()
+        self._init_qvel = self._datas[0].qvel.copy()
+        m = self.model
+        # State buffers [B, ...] in float64; row i is written only by the thread stepping copy i.
+        self._ctrl = np.zeros((num_envs, m.nu))
+        self._qstate = np.zeros((num_envs, m.nq + m.nv))
+        self._body_xy = np.zeros((num_envs, 2))  # gymnasium's data.body(1).xpos[:2]
+        self._cfrc_ext = np.zeros((num_envs, m.nbody, 6))
+        self._rows = [
+            (d, self._ctrl[i], self._qstate[i], self._body_xy[i], self._cfrc_ext[i], d.xpos[1, :2], d.cfrc_ext)
+            for i, d in enumerate(self._datas)
+        ]
+        if num_threads is None:
+            num_threads = len(os.sched_getaffinity(0))
+        num_threads = max(1, min(num_threads, num_envs // _MIN_COPIES_PER_THREAD))
+        bounds = np.linspace(0, num_envs, num_threads + 1).astype(int)
+        self._chunks = [self._rows[lo:hi] for lo, hi in zip(bounds[:-1], bounds[1:])]
+        self._pool = ThreadPoolExecutor(num_threads) if num_threads > 1 else None
+        self._rng = np.random.default_rng(seed)
+        self._make_specs()
+
+    # ----------------------------------------------------------------------------------------------------- specs
+    def _make_specs(self) -> None:
+        B, dev = self.batch_size[0], self.device
+        obs = physics_spec(self.NAME, B, dev)
+        obs["observation"] = Unbounded((B, self.obs_dim), dtype=torch.float32, device=dev)
+        self.observation_spec = obs
+        self.action_spec = Bounded(-1.0, 1.0, (B, self.model.nu), dtype=torch.float32, device=dev)
+        self.reward_spec = Unbounded((B, 1), dtype=torch.float32, device=dev)
+        self.done_spec = Composite(
+            {k: Categorical(2, (B, 1), dtype=torch.bool, device=dev) for k in ("done", "terminated", "truncated")},
+            shape=(B,),
+            device=dev,
+        )
+
+    @property
+    def obs_dim(self) -> int:
+        return self._observe().shape[-1]
+
+    # ----------------------------------------------------------------------------------------------- subclass API
+    def _observe(self) -> np.ndarray:
+        """Observation ``[B, obs_dim]`` float64 from the state buffers."""
+        raise NotImplementedError
+
+    def _step_values(
+        self, action: np.ndarray, qpos_before: np.ndarray, xy_before: np.ndarray
+    ) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]:
+        """``(env_reward [B], {physics key: [B, width]}, terminated [B] bool)`` after a step, as gymnasium does."""
+        raise NotImplementedError
+
+    # --------------------------------------------------------------------------------------------------- physics
+    def _advance(self, rows) -> None:
+        model, nstep, contacts = self.model, self._frame_skip, self._observe_contacts
+        for d, ctrl, qstate, body_xy, cfrc, xpos_src, cfrc_src in rows:
+            d.ctrl[:] = ctrl
+            mujoco.mj_step(model, d, nstep)
+            if contacts:  # as gymnasium's MujocoEnv._step_mujoco_simulation (needed for cfrc_ext)
+                mujoco.mj_rnePostConstraint(model, d)
+                cfrc[:] = cfrc_src
+            mujoco.mj_getState(model, d, qstate, _QSTATE)
+            body_xy[:] = xpos_src
+
+    def _read(self, rows) -> None:
+        """Refresh the state buffers of ``rows`` after a reset or :meth:`set_mj_state`."""
+        for d, _, qstate, body_xy, cfrc, xpos_src, cfrc_src in rows:
+            mujoco.mj_getState(self.model, d, qstate, _QSTATE)
+            body_xy[:] = xpos_src
+            cfrc[:] = cfrc_src
+
+    def set_mj_state(self, qpos: np.ndarray, qvel: np.ndarray, env_ids=None) -> None:
+        """Gymnasium's ``set_state`` for copies ``env_ids`` (default all): ``qpos`` ``[n, nq]``, ``qvel`` ``[n, nv]``."""
+        ids = range(self.batch_size[0]) if env_ids is None else [int(i) for i in env_ids]
+        qpos, qvel = np.atleast_2d(qpos), np.atleast_2d(qvel)
+        if qpos.shape != (len(ids), self.model.nq) or qvel.shape != (len(ids), self.model.nv):
+            raise ValueError(
+                f"expected qpos [{len(ids)}, {self.model.nq}] and qvel [{len(ids)}, {self.model.nv}], "
+                f"got {list(qpos.shape)} and {list(qvel.shape)}."
+            )
+        for i, qp, qv in zip(ids, qpos, qvel):
+            d = self._datas[i]
+            d.qpos[:] = qp
+            d.qvel[:] = qv
+            mujoco.mj_forward(self.model, d)
+        self._read([self._rows[i] for i in ids])
+
+    # ---------------------------------------------------------------------------------------------- EnvBase API
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        mask = None if tensordict is None else tensordict.get("_reset", None)
+        B = self.batch_size[0]
+        ids = np.arange(B) if mask is None else np.flatnonzero(mask.reshape(B).cpu().numpy())
+        s = self.reset_noise_scale
+        # gymnasium's reset_model: uniform qpos noise, then standard-normal qvel noise, from one generator.
+        qpos = self._init_qpos + self._rng.uniform(low=-s, high=s, size=(len(ids), self.model.nq))
+        qvel = self._init_qvel + s * self._rng.standard_normal((len(ids), self.model.nv))
+        for i in ids:
+            mujoco.mj_resetData(self.model, self._datas[i])
+        self.set_mj_state(qpos, qvel, ids)
+        return self._output(np.zeros(B), self._physics_at_reset(), np.zeros(B, dtype=bool))
+
+    def _physics_at_reset(self) -> dict[str, np.ndarray]:
+        """Physics keys at reset: positions from the state; velocities and reward terms 0 (as in gymnasium's info)."""
+        B = self.batch_size[0]
+        out = {k: np.zeros((B, w)) for k, w in PHYSICS_KEYS[self.NAME].items()}
+        position_key = "xy_position" if "xy_position" in out else "x_position"
+        out[position_key] = self._qstate[:, : out[position_key].shape[1]]
+        return out
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get("action").detach().to("cpu", torch.float32).numpy()
+        qpos_before = self._qstate[:, : self.model.nq].copy()
+        xy_before = self._body_xy.copy()
+        self._ctrl[:] = action
+        if self._pool is None:
+            self._advance(self._rows)
+        else:
+            list(self._pool.map(self._advance, self._chunks))
+        env_reward, physics, terminated = self._step_values(action, qpos_before, xy_before)
+        out = self._output(env_reward, physics, terminated)
+        out.set("reward", torch.zeros(self.batch_size[0], 1, device=self.device))
+        return out
+
+    def _output(self, env_reward, physics, terminated) -> TensorDict:
+        B, dev = self.batch_size[0], self.device
+
+        def f32(x: np.ndarray) -> torch.Tensor:
+            return torch.as_tensor(np.asarray(x, dtype=np.float32).reshape(B, -1), device=dev)
+
+        done = torch.as_tensor(terminated, device=dev).reshape(B, 1)
+        return TensorDict(
+            {
+                "observation": f32(self._observe()),
+                "env_reward": f32(env_reward),
+                **{k: f32(v) for k, v in physics.items()},
+                "done": done,
+                "terminated": done.clone(),
+                "truncated": torch.zeros(B, 1, dtype=torch.bool, device=dev),
+            },
+            batch_size=self.batch_size,
+            device=dev,
+        )
+
+    def _set_seed(self, seed: int | None) -> None:
+        self._rng = np.random.default_rng(seed)
+
+    def close(self, *, raise_if_closed: bool = True) -> None:
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
+        super().close(raise_if_closed=raise_if_closed)
+
+
+class HalfCheetahBatchedEnv(BatchedMujocoEnv):
+    """``HalfCheetah-v5`` (default kwargs): obs 17 (qpos without rootx, qvel), act 6, never terminates.
+
+    ``env_reward = x_velocity - 0.1 * |a|^2`` with ``x_velocity = (rootx' - rootx) / dt``, ``dt = 0.05``.
+    """
+
+    NAME = "half_cheetah"
+    FORWARD_REWARD_WEIGHT = 1.0
+    CTRL_COST_WEIGHT = 0.1
+
+    def _observe(self) -> np.ndarray:
+        return self._qstate[:, 1:]
+
+    def _step_values(self, action, qpos_before, xy_before):
+        x_after = self._qstate[:, 0]
+        x_velocity = (x_after - qpos_before[:, 0]) / self.dt
+        ctrl_cost = self.CTRL_COST_WEIGHT * np.sum(np.square(action), axis=-1)
+        env_reward = self.FORWARD_REWARD_WEIGHT * x_velocity - ctrl_cost
+        physics = {"x_position": x_after, "x_velocity": x_velocity}
+        return env_reward, physics, np.zeros(len(action), dtype=bool)
+
+
+class AntBatchedEnv(BatchedMujocoEnv):
+    """``Ant-v5`` with ``exclude_current_positions_from_observation=False``: obs 107, act 8.
+
+    Observation: qpos (15, x-y first), qvel (14), external contact forces of bodies 1.. clipped to [-1, 1] (78).
+    ``env_reward = x_velocity + healthy - 0.5 |a|^2 - 5e-4 |clip(cfrc_ext)|^2``, where ``x_velocity`` is the torso
+    body's x displacement over ``dt = 0.05`` as gymnasium measures it (``data.body(1).xpos``), ``healthy`` is 1 when
+    the state is finite and the torso height ``qpos[2]`` lies in [0.2, 1.0]; unhealthy copies terminate.
+    """
+
+    NAME = "ant"
+    _observe_contacts = True
+    FORWARD_REWARD_WEIGHT = 1.0
+    CTRL_COST_WEIGHT = 0.5
+    CONTACT_COST_WEIGHT = 5e-4
+    HEALTHY_REWARD = 1.0
+    HEALTHY_Z_RANGE = (0.2, 1.0)
+    CONTACT_FORCE_RANGE = (-1.0, 1.0)
+
+    def _contact_forces(self) -> np.ndarray:
+        return np.clip(self._cfrc_ext, *self.CONTACT_FORCE_RANGE)
+
+    def _observe(self) -> np.ndarray:
+        contact = self._contact_forces()[:, 1:].reshape(self.batch_size[0], -1)
+        return np.concatenate([self._qstate, contact], axis=-1)
+
+    def _step_values(self, action, qpos_before, xy_before):
+        x_velocity = (self._body_xy[:, 0] - xy_before[:, 0]) / self.dt
+        z = self._qstate[:, 2]
+        healthy = np.isfinite(self._qstate).all(-1) & (self.HEALTHY_Z_RANGE[0] <= z) & (z <= self.HEALTHY_Z_RANGE[1])
+        healthy_reward = healthy * self.HEALTHY_REWARD
+        ctrl_cost = self.CTRL_COST_WEIGHT * np.sum(np.square(action), axis=-1)
+        contact_cost = self.CONTACT_COST_WEIGHT * np.sum(np.square(self._contact_forces()), axis=(-2, -1))
+        env_reward = (x_velocity * self.FORWARD_REWARD_WEIGHT + healthy_reward) - (ctrl_cost + contact_cost)
+        physics = {
+            "xy_position": self._qstate[:, :2],
+            "x_velocity": x_velocity,
+            "reward_survive": healthy_reward,
+            "reward_contact": -contact_cost,
+        }
+        return env_reward, physics, ~healthy
+
+
+BATCHED_ENVS: dict[str, type[BatchedMujocoEnv]] = {"half_cheetah": HalfCheetahBatchedEnv, "ant": AntBatchedEnv}
