@@ -11,8 +11,10 @@ in ``[-1, 1]``, ``("next", "reward")`` ``[B, 1]`` zeros (reward-free CMP), ``"en
 reward (0 at reset), the physics keys of :data:`PHYSICS_KEYS` (0 at reset for velocities and reward terms), and
 ``"done"``/``"terminated"``/``"truncated"`` ``[B, 1]`` bool. No time limit: wrap with ``StepCounter``.
 """
+
 from __future__ import annotations
 
+import itertools
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -50,7 +52,9 @@ class MujocoModelSpec:
 
 MODEL_SPECS: dict[str, MujocoModelSpec] = {
     "half_cheetah": MujocoModelSpec("HalfCheetah-v5", "half_cheetah.xml"),
-    "ant": MujocoModelSpec("Ant-v5", "ant.xml", gym_kwargs={"exclude_current_positions_from_observation": False}),
+    "ant": MujocoModelSpec(
+        "Ant-v5", "ant.xml", gym_kwargs={"exclude_current_positions_from_observation": False}
+    ),
 }
 
 
@@ -110,14 +114,22 @@ class BatchedMujocoEnv(EnvBase):
         self._body_xy = np.zeros((num_envs, 2))  # gymnasium's data.body(1).xpos[:2]
         self._cfrc_ext = np.zeros((num_envs, m.nbody, 6))
         self._rows = [
-            (d, self._ctrl[i], self._qstate[i], self._body_xy[i], self._cfrc_ext[i], d.xpos[1, :2], d.cfrc_ext)
+            (
+                d,
+                self._ctrl[i],
+                self._qstate[i],
+                self._body_xy[i],
+                self._cfrc_ext[i],
+                d.xpos[1, :2],
+                d.cfrc_ext,
+            )
             for i, d in enumerate(self._datas)
         ]
         if num_threads is None:
             num_threads = len(os.sched_getaffinity(0))
         num_threads = max(1, min(num_threads, num_envs // _MIN_COPIES_PER_THREAD))
         bounds = np.linspace(0, num_envs, num_threads + 1).astype(int)
-        self._chunks = [self._rows[lo:hi] for lo, hi in zip(bounds[:-1], bounds[1:])]
+        self._chunks = [self._rows[lo:hi] for lo, hi in itertools.pairwise(bounds)]
         self._pool = ThreadPoolExecutor(num_threads) if num_threads > 1 else None
         self._rng = np.random.default_rng(seed)
         self._make_specs()
@@ -131,7 +143,10 @@ class BatchedMujocoEnv(EnvBase):
         self.action_spec = Bounded(-1.0, 1.0, (B, self.model.nu), dtype=torch.float32, device=dev)
         self.reward_spec = Unbounded((B, 1), dtype=torch.float32, device=dev)
         self.done_spec = Composite(
-            {k: Categorical(2, (B, 1), dtype=torch.bool, device=dev) for k in ("done", "terminated", "truncated")},
+            {
+                k: Categorical(2, (B, 1), dtype=torch.bool, device=dev)
+                for k in ("done", "terminated", "truncated")
+            },
             shape=(B,),
             device=dev,
         )
@@ -302,7 +317,11 @@ class AntBatchedEnv(BatchedMujocoEnv):
     def _step_values(self, action, qpos_before, xy_before):
         x_velocity = (self._body_xy[:, 0] - xy_before[:, 0]) / self.dt
         z = self._qstate[:, 2]
-        healthy = np.isfinite(self._qstate).all(-1) & (self.HEALTHY_Z_RANGE[0] <= z) & (z <= self.HEALTHY_Z_RANGE[1])
+        healthy = (
+            np.isfinite(self._qstate).all(-1)
+            & (self.HEALTHY_Z_RANGE[0] <= z)
+            & (z <= self.HEALTHY_Z_RANGE[1])
+        )
         healthy_reward = healthy * self.HEALTHY_REWARD
         ctrl_cost = self.CTRL_COST_WEIGHT * np.sum(np.square(action), axis=-1)
         contact_cost = self.CONTACT_COST_WEIGHT * np.sum(np.square(self._contact_forces()), axis=(-2, -1))
@@ -316,4 +335,7 @@ class AntBatchedEnv(BatchedMujocoEnv):
         return env_reward, physics, ~healthy
 
 
-BATCHED_ENVS: dict[str, type[BatchedMujocoEnv]] = {"half_cheetah": HalfCheetahBatchedEnv, "ant": AntBatchedEnv}
+BATCHED_ENVS: dict[str, type[BatchedMujocoEnv]] = {
+    "half_cheetah": HalfCheetahBatchedEnv,
+    "ant": AntBatchedEnv,
+}

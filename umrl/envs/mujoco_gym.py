@@ -1,0 +1,92 @@
+"""Reference MuJoCo path: TorchRL's ``GymWrapper`` over a gymnasium *sync* vector env, with our keys.
+
+Same keys and specs as :mod:`umrl.envs.mujoco_batched` (float32 ``"observation"``, zero ``("next", "reward")``,
+``"env_reward"``, physics keys read from gymnasium's ``info``). Gymnasium's autoreset is disabled: TorchRL resets
+done copies itself through the ``"_reset"`` mask.
+"""
+
+from __future__ import annotations
+
+import gymnasium
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from torchrl.data import Composite, Unbounded
+from torchrl.envs import Compose, DoubleToFloat, GymWrapper, Transform, TransformedEnv
+from torchrl.envs.gym_like import BaseInfoDictReader
+
+from umrl.envs.mujoco_batched import MODEL_SPECS, PHYSICS_KEYS, physics_spec
+
+# Physics key -> the gymnasium info keys stacked into it (missing keys, e.g. velocities at reset, read as 0).
+_INFO_SOURCES = {
+    "x_position": ("x_position",),
+    "xy_position": ("x_position", "y_position"),
+    "x_velocity": ("x_velocity",),
+    "reward_survive": ("reward_survive",),
+    "reward_contact": ("reward_contact",),
+}
+
+
+class PhysicsInfoReader(BaseInfoDictReader):
+    """Writes env ``name``'s physics keys (float32 ``[B, width]``) from a gymnasium vector env's ``info`` dict."""
+
+    def __init__(self, name: str, num_envs: int, device: torch.device | str = "cpu"):
+        self.num_envs = num_envs
+        self.keys = PHYSICS_KEYS[name]
+        self._info_spec = physics_spec(name, num_envs, device)
+        del self._info_spec["env_reward"]
+
+    def __call__(self, info_dict: dict, tensordict: TensorDictBase) -> TensorDictBase:
+        zeros = np.zeros(self.num_envs)
+        for key in self.keys:
+            cols = [np.asarray(info_dict.get(src, zeros), dtype=np.float32) for src in _INFO_SOURCES[key]]
+            tensordict.set(key, torch.as_tensor(np.stack(cols, -1), device=tensordict.device))
+        return tensordict
+
+    @property
+    def info_spec(self) -> Composite:
+        return self._info_spec
+
+
+class EnvRewardToKey(Transform):
+    """Moves the env's own reward to ``"env_reward"`` (float32 ``[B, 1]``, 0 at reset); ``"reward"`` becomes 0."""
+
+    def __init__(self):
+        super().__init__(in_keys=["reward"], out_keys=["env_reward"])
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        reward = next_tensordict.get("reward").to(torch.float32)
+        next_tensordict.set("env_reward", reward)
+        next_tensordict.set("reward", torch.zeros_like(reward))
+        return next_tensordict
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        shape = (*tensordict_reset.batch_size, 1)
+        tensordict_reset.set("env_reward", torch.zeros(shape, device=tensordict_reset.device))
+        return tensordict_reset
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        shape = (*observation_spec.shape, 1)
+        observation_spec["env_reward"] = Unbounded(shape, dtype=torch.float32, device=observation_spec.device)
+        return observation_spec
+
+    def transform_reward_spec(self, reward_spec: Composite) -> Composite:
+        reward_spec["reward"] = Unbounded(
+            reward_spec["reward"].shape, dtype=torch.float32, device=reward_spec.device
+        )
+        return reward_spec
+
+
+def make_gym_mujoco_env(name: str, num_envs: int, *, device: torch.device | str = "cpu") -> TransformedEnv:
+    """``GymWrapper(gymnasium.make_vec(<v5 id>, num_envs, "sync"))`` with our keys; batch size ``[num_envs]``."""
+    spec = MODEL_SPECS[name]
+    vec_env = gymnasium.make_vec(
+        spec.gym_id,
+        num_envs=num_envs,
+        vectorization_mode="sync",
+        vector_kwargs={"autoreset_mode": gymnasium.vector.AutoresetMode.DISABLED},
+        **spec.gym_kwargs,
+    )
+    env = GymWrapper(vec_env, device=device)
+    env.set_info_dict_reader(PhysicsInfoReader(name, num_envs, device))
+    return TransformedEnv(env, Compose(DoubleToFloat(in_keys=["observation"]), EnvRewardToKey()))
