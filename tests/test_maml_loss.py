@@ -1,0 +1,132 @@
+"""MAMLLoss: second-order meta-gradient vs finite differences, first order, reach, zero inner steps, adapt."""
+import pytest
+import torch
+from tensordict import TensorDict
+
+from umrl.modules.policy import make_gaussian_policy
+from umrl.objectives.maml import MAMLLoss, gaussian_kl
+from umrl.objectives.policy_gradient import vpg_loss
+from umrl.rollout import FunctionalPolicy
+
+T, N, H, OBS, ACT = 2, 3, 4, 2, 2
+
+
+def _policy(seed=0, dtype=torch.float64):
+    torch.manual_seed(seed)
+    return make_gaussian_policy(OBS, ACT, hidden=(5,), init_std=0.7).to(dtype)
+
+
+def _batch(policy, params=None, seed=0, dtype=torch.float64):
+    """A [T, N, H] batch whose actions, log-probs and loc/scale come from `params` (per task) or the policy."""
+    g = torch.Generator().manual_seed(seed)
+    td = TensorDict(
+        {
+            "observation": torch.randn(T, N, H, OBS, generator=g, dtype=dtype),
+            "advantage": torch.randn(T, N, H, 1, generator=g, dtype=dtype),
+            "mask": torch.ones(T, N, H, dtype=torch.bool),
+            "next": {"reward": torch.randn(T, N, H, 1, generator=g, dtype=dtype)},
+        },
+        batch_size=[T, N, H],
+    )
+    td["mask"][0, 0, -1] = False
+    functional = FunctionalPolicy(policy)
+    p = TensorDict.from_module(policy).detach() if params is None else params.detach()
+    with torch.no_grad():
+        dist_params = functional.dist_params(p, td)
+        td.update(dist_params.select("loc", "scale"))
+        td["action"] = td["loc"] + td["scale"] * torch.randn(td["loc"].shape, generator=g, dtype=dtype)
+        td["action_log_prob"] = functional.log_prob(p, td)
+    return td
+
+
+def _grad(loss_module, support, query):
+    params = loss_module.params
+    leaves = list(params.values(True, True))
+    loss, _ = loss_module.objective_and_kl(support, query)
+    return torch.cat([g.reshape(-1) for g in torch.autograd.grad(loss, leaves)])
+
+
+def test_second_order_meta_gradient_matches_central_finite_differences():
+    policy = _policy()
+    loss_module = MAMLLoss(policy, inner_lr=0.5)
+    support = _batch(policy, seed=1)
+    with torch.no_grad():
+        adapted = loss_module.adapt(support)
+    query = _batch(policy, adapted, seed=2)
+    analytic = _grad(loss_module, support, query)
+    leaves = list(loss_module.params.values(True, True))
+    numeric, eps = [], 1e-6
+    for p in leaves:
+        flat = p.data.view(-1)
+        for i in range(flat.numel()):
+            old = flat[i].item()
+            values = []
+            for sign in (1, -1):
+                flat[i] = old + sign * eps
+                with torch.no_grad():
+                    values.append(loss_module.objective_and_kl(support, query)[0].item())
+            flat[i] = old
+            numeric.append((values[0] - values[1]) / (2 * eps))
+    numeric = torch.tensor(numeric, dtype=torch.float64)
+    torch.testing.assert_close(analytic, numeric, rtol=1e-5, atol=1e-7)
+
+    first = _grad(MAMLLoss(policy, inner_lr=0.5, first_order=True), support, query)
+    assert (first - numeric).norm() > 1e-3 * numeric.norm()  # the Hessian terms matter at this inner lr
+    # first order = gradient of the outer loss w.r.t. the adapted params, summed over tasks
+    phi = adapted.clone().requires_grad_(True)
+    outer, _, _ = loss_module._surrogate_and_kl(phi, query)
+    d_phi = torch.autograd.grad(outer, [phi.get(k) for k in phi.keys(True, True)])
+    torch.testing.assert_close(first, torch.cat([g.sum(0).reshape(-1) for g in d_phi]))
+
+
+@pytest.mark.parametrize("task_loop", [False, True])
+def test_meta_gradient_reaches_every_parameter(task_loop):
+    policy = _policy(dtype=torch.float32)
+    loss_module = MAMLLoss(policy, task_loop=task_loop)
+    support = _batch(policy, seed=3, dtype=torch.float32)
+    with torch.no_grad():
+        query = _batch(policy, loss_module.adapt(support), seed=4, dtype=torch.float32)
+    out = loss_module(support, query)
+    assert set(out.keys()) >= {"loss_objective", "kl", "inner_loss", "return_pre", "return_post"}
+    assert not out["kl"].requires_grad and out["kl"].abs() < 1e-5
+    out["loss_objective"].backward()
+    for name, p in policy.named_parameters():
+        assert p.grad is not None and p.grad.abs().sum() > 0, name
+
+
+def test_zero_inner_steps_is_plain_policy_gradient():
+    policy = _policy()
+    loss_module = MAMLLoss(policy, num_inner_steps=0)
+    query = _batch(policy, seed=5)
+    maml_grad = _grad(loss_module, query, query)
+    leaves = list(loss_module.params.values(True, True))
+    pg = vpg_loss(FunctionalPolicy(policy).log_prob(loss_module.params, query), query).mean()
+    torch.testing.assert_close(maml_grad, torch.cat([g.reshape(-1) for g in torch.autograd.grad(pg, leaves)]))
+
+
+def test_adapt_is_one_sgd_step_per_task_and_detached_under_no_grad():
+    policy = _policy()
+    loss_module = MAMLLoss(policy, inner_lr=0.3)
+    support = _batch(policy, seed=6)
+    with torch.no_grad():
+        adapted = loss_module.adapt(support)
+    assert adapted.batch_size == (T,) and not any(v.requires_grad for v in adapted.values(True, True))
+    params = loss_module.params
+    for t in range(T):
+        loss = vpg_loss(FunctionalPolicy(policy).log_prob(params, support[t]), support[t])
+        grads = torch.autograd.grad(loss, list(params.values(True, True)))
+        for (key, p), g in zip(params.items(True, True), grads):
+            torch.testing.assert_close(adapted[t].get(key), p.detach() - 0.3 * g)
+    with pytest.raises(ValueError, match=r"\[T, N, H\]"):
+        loss_module.adapt(support[0])
+
+
+def test_gaussian_kl_matches_torch():
+    g = torch.Generator().manual_seed(0)
+    l0, l1 = torch.randn(2, 5, 3, generator=g)
+    s0, s1 = torch.rand(2, 5, 3, generator=g) + 0.1
+    ref = torch.distributions.kl_divergence(
+        torch.distributions.Independent(torch.distributions.Normal(l0, s0), 1),
+        torch.distributions.Independent(torch.distributions.Normal(l1, s1), 1),
+    )
+    torch.testing.assert_close(gaussian_kl(l0, s0, l1, s1), ref)

@@ -1,0 +1,211 @@
+"""Functional MAML for policy gradients (Finn et al., 2017, https://arxiv.org/abs/1703.03400).
+
+The policy's parameters live in a TensorDict (``TensorDict.from_module(policy)``). :meth:`MAMLLoss.adapt` takes
+vanilla policy-gradient steps on each task's *support* batch and returns adapted parameters with a leading task
+dimension; :meth:`MAMLLoss.forward` scores them on the *query* batch (collected with those same adapted parameters)
+with TRPO's importance-weighted surrogate. The outer optimiser (``umrl.optim.trpo.TRPOStep``) and the advantage
+computation (``umrl.objectives.policy_gradient.compute_advantages``) live outside the loss.
+
+Batches are ``[T, N, H]`` TensorDicts from :func:`umrl.rollout.collect` with ``"advantage"`` already written.
+
+Example:
+    >>> loss = MAMLLoss(policy, inner_lr=0.1)
+    >>> support = compute_advantages(collect(env, policy, num_tasks=T, horizon=H))
+    >>> adapted = loss.adapt(support)                                  # batch [T]
+    >>> query = compute_advantages(collect(env, policy, num_tasks=T, horizon=H, params=adapted))
+    >>> out = loss(support, query)
+    >>> out["loss_objective"].backward()                               # meta-gradient, through the inner step
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.modules import ProbabilisticActor
+from torchrl.objectives import LossModule
+
+from umrl.objectives.policy_gradient import episode_returns, vpg_loss
+from umrl.rollout import FunctionalPolicy
+
+__all__ = ["MAMLLoss", "gaussian_kl"]
+
+
+def gaussian_kl(loc0: torch.Tensor, scale0: torch.Tensor, loc1: torch.Tensor, scale1: torch.Tensor) -> torch.Tensor:
+    """``KL(N(loc0, scale0²) ‖ N(loc1, scale1²))`` for diagonal Gaussians, summed over the last dim."""
+    var_ratio = (scale0 / scale1).pow(2)
+    return 0.5 * (var_ratio + ((loc0 - loc1) / scale1).pow(2) - 1 - var_ratio.log()).sum(-1)
+
+
+def _masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean of ``x`` ``[T, N, H]`` over the valid steps of each task, then over tasks."""
+    w = mask.to(x.dtype)
+    return ((x * w).sum((-2, -1)) / w.sum((-2, -1)).clamp_min(1)).mean()
+
+
+class MAMLLoss(LossModule):
+    """MAML with a vanilla policy-gradient inner loop and a TRPO-style outer surrogate.
+
+    Args:
+        policy: Gaussian actor (:func:`umrl.modules.policy.make_gaussian_policy`); its parameters are θ.
+
+    Keyword Args:
+        inner_lr: inner SGD step size α (default 0.1).
+        num_inner_steps: inner steps (default 1). Every step uses the same support batch. ``0`` makes ``adapt`` the
+            identity, so the loss is plain policy gradient on the query batch.
+        first_order: drop the second-order terms (FOMAML): inner gradients are treated as constants.
+        task_loop: evaluate per-task parameters with a Python loop over tasks rather than ``vmap``.
+
+    Inputs to :meth:`forward` (both ``[T, N, H]``, see :func:`umrl.rollout.collect`): ``support`` with
+    ``"observation"``, ``"action"``, ``"advantage"``, ``"mask"``, ``("next", "reward")``; ``query`` with the same
+    plus ``"action_log_prob"``, ``"loc"``, ``"scale"`` from the adapted policy that collected it.
+
+    Outputs of :meth:`forward`: ``loss_objective`` (−importance-weighted advantage on the query, differentiable
+    through the inner step) and detached diagnostics ``kl`` (mean KL(collecting policy ‖ current adapted policy)),
+    ``inner_loss``, ``return_pre`` / ``return_post`` (mean undiscounted episode return of support / query),
+    ``ratio_max``.
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Keys read by the loss (change with ``set_keys``)."""
+
+        action: str = "action"
+        action_log_prob: str = "action_log_prob"
+        advantage: str = "advantage"
+        loc: str = "loc"
+        scale: str = "scale"
+        mask: str = "mask"
+
+    default_keys = _AcceptedKeys
+
+    def __init__(
+        self,
+        policy: ProbabilisticActor,
+        *,
+        inner_lr: float = 0.1,
+        num_inner_steps: int = 1,
+        first_order: bool = False,
+        task_loop: bool = False,
+    ) -> None:
+        super().__init__()
+        if inner_lr <= 0 or num_inner_steps < 0:
+            raise ValueError(f"need inner_lr > 0 and num_inner_steps >= 0, got {inner_lr=} and {num_inner_steps=}.")
+        self.policy = policy
+        self.functional_policy = FunctionalPolicy(policy, task_loop=task_loop)
+        self.inner_lr = inner_lr
+        self.num_inner_steps = num_inner_steps
+        self.first_order = first_order
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:  # no value estimator: advantages come precomputed
+        pass
+
+    @property
+    def params(self) -> TensorDictBase:
+        """θ: a TensorDict sharing storage with the policy's parameters (what the outer optimiser updates)."""
+        return TensorDict.from_module(self.policy)
+
+    def _check(self, td: TensorDictBase, name: str, keys) -> None:
+        if td.batch_dims != 3:
+            raise ValueError(f"{name} must be a [T, N, H] batch of trajectories, got batch size {tuple(td.batch_size)}.")
+        missing = [k for k in keys if k not in td.keys(True)]
+        if missing:
+            raise ValueError(f"{name} lacks keys {missing}: run compute_advantages on rollouts from umrl.rollout.collect.")
+
+    def inner_loss(self, params: TensorDictBase, support: TensorDictBase) -> torch.Tensor:
+        """Per-task vanilla PG loss ``[T]`` of ``params`` (shared or ``[T]``) on ``support``."""
+        return vpg_loss(self.functional_policy.log_prob(params, support), support)
+
+    def adapt(self, support: TensorDictBase, params: TensorDictBase | None = None) -> TensorDictBase:
+        """Adapted parameters φ_t, one set per task, with batch size ``[T]``.
+
+        ``φ ← φ − α ∇_φ L_inner(φ; support_t)``, ``num_inner_steps`` times from φ = θ (``params`` or the policy's).
+        With gradients enabled and ``first_order=False`` the result is differentiable (second order) w.r.t. θ;
+        under ``torch.no_grad`` (e.g. for collection) the inner gradients are still taken and the result is
+        detached.
+        """
+        self._check(support, "support", [self.tensor_keys.action, self.tensor_keys.advantage, self.tensor_keys.mask])
+        theta = self.params if params is None else params
+        num_tasks = support.shape[0]
+        track = torch.is_grad_enabled()
+        create_graph = track and not self.first_order
+        phi = theta.expand(num_tasks) if track else theta.detach().expand(num_tasks)
+        keys = list(phi.keys(True, True))
+        for _ in range(self.num_inner_steps):
+            with torch.enable_grad():
+                if not track:
+                    phi = phi.detach().requires_grad_(True)
+                loss = self.inner_loss(phi, support).sum()  # tasks are independent: grad of the sum is per task
+                grads = torch.autograd.grad(loss, [phi.get(k) for k in keys], create_graph=create_graph)
+            new_phi = phi.empty()
+            for key, grad in zip(keys, grads):
+                new_phi.set(key, phi.get(key) - self.inner_lr * grad)
+            phi = new_phi if track else new_phi.detach()
+        return phi
+
+    def _surrogate_and_kl(
+        self, phi: TensorDictBase, query: TensorDictBase
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        keys = self.tensor_keys
+        dist_params = self.functional_policy.dist_params(phi, query)
+        dist = self.policy.build_dist_from_params(dist_params)
+        ratio = (dist.log_prob(query[keys.action]) - query[keys.action_log_prob]).exp()
+        surrogate = -_masked_mean(ratio * query[keys.advantage].squeeze(-1), query[keys.mask])
+        kl = gaussian_kl(query[keys.loc], query[keys.scale], dist_params["loc"], dist_params["scale"])
+        return surrogate, _masked_mean(kl, query[keys.mask]), ratio
+
+    def objective_and_kl(self, support: TensorDictBase, query: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(loss_objective, kl)`` as differentiable scalars: the closure for :class:`umrl.optim.trpo.TRPOStep`."""
+        surrogate, kl, _ = self._surrogate_and_kl(self.adapt(support), query)
+        return surrogate, kl
+
+    def hvp_kl(
+        self,
+        support: TensorDictBase,
+        query: TensorDictBase,
+        *,
+        fraction: float = 1.0,
+        generator: torch.Generator | None = None,
+    ) -> torch.Tensor:
+        """KL whose Hessian drives TRPO's conjugate gradient, on a random ``fraction`` of each task's trajectories.
+
+        KL(π_φ(θ̄) ‖ π_φ(θ)) with θ̄ = stop-gradient(θ) and φ the adapted parameters computed from the *subsampled*
+        support: zero with zero gradient at θ, so its Hessian there is the (Gauss–Newton) Fisher of the adapted
+        policy through the inner step. With ``fraction=1`` it equals the Hessian of the ``kl`` of
+        :meth:`objective_and_kl`.
+        """
+        if not 0 < fraction <= 1:
+            raise ValueError(f"fraction must be in (0, 1], got {fraction}.")
+        if fraction < 1:
+            n = support.shape[1]
+            keep = max(1, math.ceil(fraction * n))
+            idx = torch.randperm(n, generator=generator)[:keep]
+            support, query = support[:, idx], query[:, idx]
+        phi = self.adapt(support)
+        with torch.no_grad():
+            old = self.functional_policy.dist_params(phi.detach(), query)
+        new = self.functional_policy.dist_params(phi, query)
+        kl = gaussian_kl(old["loc"], old["scale"], new["loc"], new["scale"])
+        return _masked_mean(kl, query[self.tensor_keys.mask])
+
+    def forward(self, support: TensorDictBase, query: TensorDictBase) -> TensorDictBase:
+        keys = self.tensor_keys
+        self._check(query, "query", [keys.action, keys.action_log_prob, keys.advantage, keys.loc, keys.scale, keys.mask])
+        if query.shape[0] != support.shape[0]:
+            raise ValueError(f"support has {support.shape[0]} tasks but query has {query.shape[0]}.")
+        phi = self.adapt(support)
+        surrogate, kl, ratio = self._surrogate_and_kl(phi, query)
+        with torch.no_grad():
+            inner = self.inner_loss(self.params, support).mean()
+        return TensorDict(
+            {
+                "loss_objective": surrogate,
+                "kl": kl.detach(),
+                "inner_loss": inner,
+                "return_pre": episode_returns(support).mean(),
+                "return_post": episode_returns(query).mean(),
+                "ratio_max": ratio.detach().max(),
+            },
+            batch_size=[],
+        )
