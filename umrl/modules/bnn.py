@@ -16,6 +16,7 @@ The ELBO loss lives in :class:`umrl.objectives.vime.VIMELoss`; the reward transf
 """
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 
@@ -119,7 +120,7 @@ class BayesianDynamics(nn.Module):
         sizes = [obs_dim + act_dim, *hidden, obs_dim]
         std0 = self.prior_std if init_std is None else float(init_std)
         self.layers = nn.ModuleList(
-            BayesianLinear(i, o, init_std=std0) for i, o in zip(sizes[:-1], sizes[1:])
+            BayesianLinear(i, o, init_std=std0) for i, o in itertools.pairwise(sizes)
         )
         self.input_rms = RunningMeanStd(shape=(obs_dim + act_dim,))
         self.target_rms = RunningMeanStd(shape=(obs_dim,))
@@ -180,15 +181,15 @@ class BayesianDynamics(nn.Module):
     def kl_between(self, params_q: dict[str, torch.Tensor], params_p: dict[str, torch.Tensor] | None) -> torch.Tensor:
         """Closed-form ``KL(q(params_q) || q(params_p))``; ``params_p=None`` means the prior. Keys as ``named_parameters``."""
         total = torch.zeros(())
-        for name in params_q:
+        for name, mu_q in params_q.items():
             if not name.endswith("_mu"):
                 continue
             rho = name[: -len("_mu")] + "_rho"
             std_q = F.softplus(params_q[rho])
             if params_p is None:
-                total = total + gaussian_kl(params_q[name], std_q, 0.0, self.prior_std)
+                total = total + gaussian_kl(mu_q, std_q, 0.0, self.prior_std)
             else:
-                total = total + gaussian_kl(params_q[name], std_q, params_p[name], F.softplus(params_p[rho]))
+                total = total + gaussian_kl(mu_q, std_q, params_p[name], F.softplus(params_p[rho]))
         return total
 
     @staticmethod

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -70,7 +71,7 @@ class VIMELoss(LossModule):
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
-    out_keys = ["loss_dynamics", "kl_prior", "log_likelihood", "elbo"]
+    out_keys: ClassVar[list[str]] = ["loss_dynamics", "kl_prior", "log_likelihood", "elbo"]
 
     def __init__(self, dynamics: BayesianDynamics, *, dataset_size: int, num_samples: int = 10):
         super().__init__()
