@@ -169,8 +169,8 @@ class BatchedMujocoEnv(EnvBase):
     # --------------------------------------------------------------------------------------------------- physics
     def _advance(self, rows) -> None:
         model, nstep, contacts = self.model, self._frame_skip, self._observe_contacts
-        for d, ctrl, qstate, body_xy, cfrc, xpos_src, cfrc_src in rows:
-            d.ctrl[:] = ctrl
+        for d, ctrl, ctrl_dst, qstate, body_xy, cfrc, xpos_src, cfrc_src in rows:
+            ctrl_dst[:] = ctrl
             mujoco.mj_step(model, d, nstep)
             if contacts:  # as gymnasium's MujocoEnv._step_mujoco_simulation (needed for cfrc_ext)
                 mujoco.mj_rnePostConstraint(model, d)
@@ -180,7 +180,7 @@ class BatchedMujocoEnv(EnvBase):
 
     def _read(self, rows) -> None:
         """Refresh the state buffers of ``rows`` after a reset or :meth:`set_mj_state`."""
-        for d, _, qstate, body_xy, cfrc, xpos_src, cfrc_src in rows:
+        for d, _, _, qstate, body_xy, cfrc, xpos_src, cfrc_src in rows:
             mujoco.mj_getState(self.model, d, qstate, _QSTATE)
             body_xy[:] = xpos_src
             cfrc[:] = cfrc_src
