@@ -113,10 +113,12 @@ class BatchedMujocoEnv(EnvBase):
         self._qstate = np.zeros((num_envs, m.nq + m.nv))
         self._body_xy = np.zeros((num_envs, 2))  # gymnasium's data.body(1).xpos[:2]
         self._cfrc_ext = np.zeros((num_envs, m.nbody, 6))
+        # Per copy: its MjData, then (our buffer row, MjData field) views used by the step loop.
         self._rows = [
             (
                 d,
                 self._ctrl[i],
+                d.ctrl,
                 self._qstate[i],
                 self._body_xy[i],
                 self._cfrc_ext[i],
