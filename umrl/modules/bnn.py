@@ -54,7 +54,9 @@ class BayesianLinear(nn.Module):
 
     ``forward(x [S, N, in], weight_noise [S, out, in], bias_noise [S, out]) -> [S, N, out]`` uses one weight sample
     per leading index ``S`` (shared by the ``N`` inputs); the noise is passed in so that callers control it (the
-    same draw can serve a whole vmapped batch).
+    same draw can serve a whole vmapped batch). A single input per sample, ``x [S, in] -> [S, out]``, is computed
+    by broadcasting instead of a batched matmul: under ``vmap`` over transitions that makes the per-sample weight
+    gradients elementwise products, measured 2x faster than the ``k = 1`` batched matmuls on CPU.
     """
 
     def __init__(self, in_features: int, out_features: int, *, init_std: float):
@@ -68,6 +70,8 @@ class BayesianLinear(nn.Module):
     def forward(self, x: torch.Tensor, weight_noise: torch.Tensor, bias_noise: torch.Tensor) -> torch.Tensor:
         weight = self.weight_mu + F.softplus(self.weight_rho) * weight_noise
         bias = self.bias_mu + F.softplus(self.bias_rho) * bias_noise
+        if x.dim() == 2:
+            return (weight * x.unsqueeze(-2)).sum(-1) + bias
         return torch.baddbmm(bias.unsqueeze(-2), x, weight.transpose(-1, -2))
 
 
@@ -157,7 +161,8 @@ class BayesianDynamics(nn.Module):
         ]
 
     def forward(self, x: torch.Tensor, noise: Noise) -> torch.Tensor:
-        """Predicted standardised next observation, ``x [N, D + A]`` -> ``[S, N, D]``."""
+        """Predicted standardised next observation, ``x [N, D + A]`` -> ``[S, N, D]`` (one input ``[D + A]`` ->
+        ``[S, D]``)."""
         h = x.expand(noise[0][0].shape[0], *x.shape)
         for i, (layer, (w_eps, b_eps)) in enumerate(zip(self.layers, noise)):
             h = layer(h, w_eps, b_eps)
@@ -224,9 +229,9 @@ class BayesianDynamics(nn.Module):
         :meth:`inverse_kl_hessian`) moves the posterior by
         ``KL(q(phi'_n) || q(phi)) ~= 0.5 * step_size^2 * sum_k g_nk^2 / H_k``.
         All ``N`` gradients come from one ``vmap(grad(...))``; the ``num_samples`` weight draws (``noise``) are
-        shared across the batch. ``chunk_size`` bounds the memory of the vmap (default: about 2^23 floats of
-        per-sample gradients per chunk, which also kept the work in cache on a 2-core CPU). Uses the current
-        normalizer.
+        shared across the batch. ``chunk_size`` bounds the memory of the vmap (default: about 2^25 floats of
+        per-sample gradients per chunk: the whole batch for point_nav, a few hundred transitions for Ant). Uses
+        the current normalizer.
         """
         x, y = self.normalize(obs, action, next_obs)
         params = {k: v.detach() for k, v in self.named_parameters()}
@@ -235,11 +240,11 @@ class BayesianDynamics(nn.Module):
             noise = self.sample_noise(num_samples)
         if chunk_size is None:
             num_weights = sum(v.numel() for v in params.values())
-            chunk_size = max(1, 2**23 // (noise[0][0].shape[0] * num_weights))
+            chunk_size = max(1, 2**25 // (noise[0][0].shape[0] * num_weights))
 
         def nll(p: dict[str, torch.Tensor], xi: torch.Tensor, yi: torch.Tensor) -> torch.Tensor:
-            pred = functional_call(self, p, (xi[None], noise))
-            return -self.gaussian_log_prob(pred, yi[None]).mean()
+            pred = functional_call(self, p, (xi, noise))  # [S, D]
+            return -self.gaussian_log_prob(pred, yi).mean()
 
         def kl_after_step(xi: torch.Tensor, yi: torch.Tensor) -> torch.Tensor:
             g = grad(nll)(params, xi, yi)
