@@ -21,10 +21,12 @@ DIAYN-init first picks, for every task, the skill whose rollouts earn the highes
 from __future__ import annotations
 
 import csv
+import json
 import math
 import os
+import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -33,12 +35,13 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import TransformedEnv
 
-from umrl.envs import make_task_env
+from umrl.envs import make_env, make_task_env
 from umrl.envs.tasks import get_task_family
+from umrl.modules.policy import make_gaussian_policy
 from umrl.objectives.policy_gradient import compute_advantages, episode_returns, vpg_loss
 from umrl.plots import Curve
 from umrl.rollout import FunctionalPolicy, collect
-from umrl.runtime import check_finite
+from umrl.runtime import check_finite, seed_everything
 from umrl.stats import auc, bootstrap_ci, summarize
 from umrl.transforms.skill import SkillTransform
 
@@ -207,6 +210,135 @@ def sweep_tasks(env_name: str, num_tasks: int, seed: int) -> torch.Tensor:
     """Tasks for the learning-rate sweep: drawn from the family with a seed unrelated to the held-out set."""
     generator = torch.Generator().manual_seed(seed + SWEEP_SEED_OFFSET)
     return get_task_family(env_name).sample(num_tasks, generator)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Methods: what each one hands to meta-test, and one cell = (method, env, seed).
+
+#: Method name -> (pre-training that produces its initialisation, update rule at meta-test).
+METHODS = {
+    "uml_diayn": ("maml_diayn", "sgd"),
+    "uml_random": ("maml_random", "sgd"),
+    "oracle": ("maml_oracle", "sgd"),
+    "vime_init": ("vime", "adam"),
+    "diayn_init": ("diayn", "adam"),
+    "scratch": (None, "adam"),
+}
+
+
+@dataclass
+class Initialisation:
+    """A policy to adapt, its update rule and (DIAYN-init) the skill count; ``lr`` is the SGD step of MAML inits."""
+
+    policy: TensorDictModuleBase
+    optimizer: str
+    lr: float | None = None
+    num_skills: int | None = None
+
+
+def env_dims(env_name: str) -> tuple[int, int]:
+    """``(obs_dim, act_dim)`` of an env (builds one copy)."""
+    env = make_env(env_name, 1)
+    dims = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
+    env.close()
+    return dims
+
+
+def load_initialisation(method: str, env_name: str, checkpoint: str | os.PathLike | None, *,
+                        seed: int) -> Initialisation:
+    """The policy ``method`` starts meta-test from (see :data:`METHODS`); ``checkpoint`` is its pre-training output.
+
+    scratch draws a fresh 2x300 Gaussian policy from ``seed``; the MAML inits return the SGD step size they were
+    meta-trained with as ``lr``.
+    """
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; valid choices: {list(METHODS)}.")
+    pretraining, rule = METHODS[method]
+    if pretraining is not None and checkpoint is None:
+        raise ValueError(f"method {method!r} needs the checkpoint of its {pretraining} pre-training.")
+    if method == "scratch":
+        seed_everything(seed)
+        return Initialisation(make_gaussian_policy(*env_dims(env_name)), rule)
+    if method == "vime_init":
+        from umrl.objectives.vime import load_vime_policy
+
+        return Initialisation(load_vime_policy(checkpoint), rule)
+    if method == "diayn_init":
+        from umrl.diayn_checkpoint import load_skill_policy
+
+        actor, num_skills, _ = load_skill_policy(checkpoint)
+        return Initialisation(actor, rule, num_skills=num_skills)
+    from umrl.maml_checkpoint import load_maml_policy
+
+    policy, inner_lr = load_maml_policy(checkpoint)
+    return Initialisation(policy, rule, lr=inner_lr)
+
+
+def meta_test(init: Initialisation, env_name: str, tasks: torch.Tensor, *, lr: float, seed: int,
+              config: AdaptationConfig, skill_trajectories: int = 4) -> tuple[torch.Tensor, dict]:
+    """Adapt ``init`` on ``tasks`` ``[T, task_dim]``; returns (returns ``[K + 1, T]``, info).
+
+    DIAYN-init first picks each task's best skill from ``skill_trajectories`` rollouts per (task, skill);
+    ``info["skills"]`` lists them.
+    """
+    seed_everything(seed)
+    info: dict = {}
+    skills = None
+    if init.num_skills is not None:
+        skills, _ = select_skills(init.policy, env_name, tasks, init.num_skills, num_trajectories=skill_trajectories,
+                                  seed=seed, horizon=config.horizon)
+        info["skills"] = skills.tolist()
+    env = make_eval_env(env_name, tasks, config.num_trajectories, seed=seed, horizon=config.horizon, skills=skills,
+                        num_skills=init.num_skills)
+    returns = TaskAdapter(init.policy, env, tasks.shape[0], optimizer=init.optimizer, lr=lr, config=config).run()
+    env.close()
+    return returns, info
+
+
+def run_cell(spec: Mapping) -> str:
+    """Evaluate one (method, env, seed) cell and write its tidy CSV; the suite's unit of work (picklable input).
+
+    ``spec`` keys: ``method``, ``env``, ``seed``, ``checkpoint`` (path or None), ``output`` (CSV path),
+    ``protocol`` (:class:`AdaptationConfig` fields), ``num_tasks``, ``adam_lr``, ``sgd_lr`` (None: the MAML
+    checkpoint's inner lr), ``sweep`` (``enabled``, ``lrs``, ``num_tasks``, ``num_steps``), ``skill_trajectories``,
+    ``threads``, optional ``extra`` (constant columns added to every row, e.g. the ablation's ``iteration``).
+    A JSON file beside the CSV records the learning rate used, the sweep scores, DIAYN-init's skills and timings.
+    Returns the CSV path; an existing CSV is left untouched (finished cells are never recomputed).
+    """
+    output = Path(spec["output"])
+    if output.exists():
+        return str(output)
+    torch.set_num_threads(int(spec.get("threads", 1)))
+    start = time.perf_counter()
+    method, env_name, seed = spec["method"], spec["env"], int(spec["seed"])
+    config = AdaptationConfig(**spec["protocol"])
+    init = load_initialisation(method, env_name, spec.get("checkpoint"), seed=seed)
+    info: dict = {"method": method, "env": env_name, "seed": seed, "checkpoint": spec.get("checkpoint")}
+    if init.optimizer == "sgd":
+        lr = float(spec["sgd_lr"]) if spec.get("sgd_lr") is not None else init.lr
+    else:
+        lr = float(spec["adam_lr"])
+        sweep = spec.get("sweep") or {}
+        if sweep.get("enabled"):
+            sweep_config = replace(config, num_steps=int(sweep.get("num_steps", config.num_steps)))
+
+            def trial(trial_lr: float, tasks: torch.Tensor) -> torch.Tensor:
+                fresh = load_initialisation(method, env_name, spec.get("checkpoint"), seed=seed)
+                return meta_test(fresh, env_name, tasks, lr=trial_lr, seed=seed, config=sweep_config,
+                                 skill_trajectories=int(spec.get("skill_trajectories", 4)))[0]
+
+            lr, info["sweep_scores"] = sweep_learning_rate(
+                trial, list(sweep["lrs"]), sweep_tasks(env_name, int(sweep.get("num_tasks", 5)), seed))
+    tasks = get_task_family(env_name).eval_tasks(int(spec.get("num_tasks", 20)))
+    returns, extra_info = meta_test(init, env_name, tasks, lr=lr, seed=seed, config=config,
+                                    skill_trajectories=int(spec.get("skill_trajectories", 4)))
+    info.update(extra_info, lr=lr, optimizer=init.optimizer, seconds=time.perf_counter() - start,
+                mean_return=returns.mean(-1).tolist())
+    rows = to_rows(returns, method=method, env=env_name, seed=seed, **dict(spec.get("extra") or {}))
+    output.with_suffix(".json").parent.mkdir(parents=True, exist_ok=True)
+    output.with_suffix(".json").write_text(json.dumps(info, indent=1))
+    write_rows(rows, output)  # last: the CSV's existence marks the cell finished
+    return str(output)
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -1,0 +1,105 @@
+"""Benchmark suite: planning, skipping finished cells, resuming a killed run, the Ray launcher."""
+import importlib.util
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from umrl.evaluation import read_rows, write_rows
+
+REPO = Path(__file__).resolve().parents[1]
+_spec = importlib.util.spec_from_file_location("umrl_suite", REPO / "benchmarks" / "suite.py")
+suite = sys.modules["umrl_suite"] = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(suite)
+
+TINY = ["num_tasks=2", "protocol.num_steps=1", "protocol.num_trajectories=2", "protocol.horizon=10",
+        "logger.backend=none", "ablation.enabled=false", "launcher.threads=1"]
+
+
+def _cfg(tmp_path, *overrides):
+    with initialize_config_dir(config_dir=str(REPO / "benchmarks" / "config"), version_base="1.3"):
+        return compose("suite", overrides=[f"output_dir={tmp_path}", *TINY, *overrides])
+
+
+def test_plan_dependencies_and_shared_pretraining(tmp_path):
+    cfg = _cfg(tmp_path, "seeds=[0,1]", "pretrain_seed=0", "methods=[uml_diayn,diayn_init,scratch]")
+    jobs = {job.key: job for job in suite.plan(cfg, group="g")}
+    # one DIAYN and one MAML(diayn) run shared by both seeds; MAML(diayn) waits for DIAYN
+    assert sorted(k for k in jobs if k.startswith("pretrain")) == [
+        "pretrain/diayn/point_nav/seed0", "pretrain/maml_diayn/point_nav/seed0"]
+    assert jobs["pretrain/maml_diayn/point_nav/seed0"].deps == ("pretrain/diayn/point_nav/seed0",)
+    assert jobs["cell/point_nav/uml_diayn/seed1"].deps == ("pretrain/maml_diayn/point_nav/seed0",)
+    assert jobs["cell/point_nav/diayn_init/seed1"].deps == ("pretrain/diayn/point_nav/seed0",)
+    assert jobs["cell/point_nav/scratch/seed0"].deps == ()
+    command = jobs["pretrain/maml_diayn/point_nav/seed0"].args[0][-1]
+    assert "proposal=diayn" in command and "checkpoint.keep_all=true" in command and "resume=true" not in command
+    # a checkpoint in the run dir makes the recipe resume instead of starting over
+    ckpt_dir = tmp_path / "pretrain" / "diayn" / "point_nav" / "seed0" / "checkpoints"
+    ckpt_dir.mkdir(parents=True)
+    (ckpt_dir / "step_10.pt").write_bytes(b"")
+    assert "resume=true" in suite.pretrain_command(cfg, "diayn", "point_nav", 0, "g")
+
+
+def test_failed_job_blocks_dependants_only():
+    def boom():
+        raise RuntimeError("no")
+
+    ran = []
+    jobs = [suite.Job("a", boom), suite.Job("b", ran.append, args=("b",), deps=("a",)),
+            suite.Job("c", ran.append, args=("c",))]
+    succeeded, failed = suite.run_jobs(jobs, suite.InlineLauncher(), log=lambda _: None)
+    assert succeeded == {"c"} and ran == ["c"]
+    assert "RuntimeError: no" in failed["a"] and "blocked" in failed["b"]
+
+
+def test_existing_cell_is_skipped(tmp_path):
+    cfg = _cfg(tmp_path, "methods=[scratch]", "seeds=[0,1]", "launcher.workers=0")
+    planted = [{"method": "scratch", "env": "point_nav", "seed": 0, "task": t, "step": k, "return": 123.0}
+               for k in range(2) for t in range(2)]
+    existing = write_rows(planted, suite.cell_path(cfg, "point_nav", "scratch", 0))
+    suite.run_suite(cfg, log=lambda _: None)
+    assert read_rows([existing]) == planted  # untouched
+    rows = read_rows([tmp_path / "results.csv"])
+    assert {r["seed"] for r in rows} == {0, 1}
+    assert all(r["return"] != 123.0 for r in rows if r["seed"] == 1)
+    assert (tmp_path / "summary.md").exists() and (tmp_path / "curves.png").exists()
+
+
+def test_killed_suite_completes_on_restart(tmp_path):
+    cmd = [sys.executable, str(REPO / "benchmarks" / "suite.py"), f"output_dir={tmp_path}", *TINY,
+           "methods=[scratch]", "seeds=[0,1,2,3]", "launcher.workers=1"]
+    env = {**os.environ, "WANDB_MODE": "disabled"}
+    first = subprocess.Popen(cmd, cwd=REPO, env=env, start_new_session=True, stdout=subprocess.DEVNULL,
+                             stderr=subprocess.DEVNULL)
+    cells = [tmp_path / "cells" / "point_nav" / "scratch" / f"seed{s}.csv" for s in range(4)]
+    deadline = time.time() + 90
+    while not any(c.exists() for c in cells) and time.time() < deadline and first.poll() is None:
+        time.sleep(0.2)
+    os.killpg(first.pid, signal.SIGKILL)  # the suite and its workers die mid-run
+    first.wait()
+    finished = {c: c.stat().st_mtime_ns for c in cells if c.exists()}
+    assert finished and len(finished) < 4, "the kill should land between the first and the last cell"
+    assert not (tmp_path / "results.csv").exists()
+    subprocess.run(cmd, cwd=REPO, env=env, check=True, capture_output=True, timeout=120)
+    assert all(c.exists() for c in cells)
+    assert {c: c.stat().st_mtime_ns for c in finished} == finished  # finished cells were not recomputed
+    assert {r["seed"] for r in read_rows([tmp_path / "results.csv"])} == {0, 1, 2, 3}
+
+
+def test_ray_launcher_runs_two_cells(tmp_path):
+    ray = pytest.importorskip("ray")
+    cfg = _cfg(tmp_path, "methods=[scratch]", "seeds=[0,1]")
+    jobs = [j for j in suite.plan(cfg, group="g") if j.key.startswith("cell/")]
+    assert len(jobs) == 2
+    ray.init(num_cpus=2, include_dashboard=False, runtime_env={"env_vars": {"WANDB_MODE": "disabled"}})
+    try:
+        succeeded, failed = suite.run_jobs(jobs, suite.RayLauncher("local"), log=lambda _: None)
+    finally:
+        ray.shutdown()
+    assert not failed and succeeded == {j.key for j in jobs}
+    assert {r["seed"] for r in read_rows(tmp_path.rglob("seed*.csv"))} == {0, 1}
