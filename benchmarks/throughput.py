@@ -1,0 +1,310 @@
+"""Env-step throughput of umrl's CMPs, next to the raw speed of the same simulators, measured in one run.
+
+Usage::
+
+    python benchmarks/throughput.py                  # all envs, 5 repeats
+    python benchmarks/throughput.py --quick          # short run (2 repeats, fewer steps)
+    python benchmarks/throughput.py --envs half_cheetah --mujoco-batches 800 --repeats 7
+
+Every configuration is timed ``--repeats`` times, interleaved (repeat r of every configuration runs before repeat
+r + 1 of any), after one untimed warm-up call; the table gives the median env steps/s and, per env and batch size,
+the ratio to the reference row (``ref``). On a shared machine the absolute numbers are noisy: compare ratios.
+
+Rows, per env and batch size ``B`` (policy = the 2x300 Gaussian MLP of :mod:`umrl.modules.policy`, sampled):
+
+- point_nav: ``env._step`` alone (raw batched torch step), ``env.step`` alone (TorchRL's step), a bare torch loop
+  with the policy (``ref``: MLP, sampling, log-prob, point update, stored trajectory), ``env.rollout`` with the
+  policy, TorchRL ``Collector`` with the policy.
+- half_cheetah / ant: ``mujoco.rollout`` open loop on all threads (``ref``: the physics limit), gymnasium's sync
+  vector env stepped bare (random actions, no policy), the ``gym`` backend and the ``batched`` backend with the
+  policy (``env.rollout``), and the batched backend alone (random actions).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import time
+import warnings
+from collections.abc import Callable
+
+import gymnasium
+import mujoco
+import mujoco.rollout
+import numpy as np
+import torch
+from torchrl.collectors import Collector
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from umrl.envs import make_env
+from umrl.envs.mujoco_batched import BATCHED_ENVS, MODEL_SPECS
+from umrl.modules.policy import make_gaussian_policy
+
+warnings.filterwarnings("ignore", message=".*settotalmass.*")
+
+ALL_ENVS = ("point_nav", "half_cheetah", "ant")
+NUM_CPUS = len(os.sched_getaffinity(0))
+GYM_VEC = "gymnasium sync vector env, bare"
+
+# A benchmark is (env, batch, label, is_reference, setup) where setup() returns run() -> number of env steps.
+Bench = tuple[str, int, str, bool, Callable[[], Callable[[], int]]]
+
+
+def _policy(env):
+    return make_gaussian_policy(env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1])
+
+
+def _rollout(name: str, batch: int, steps: int, backend: str, with_policy: bool):
+    def setup():
+        env = make_env(name, batch, seed=0, horizon=10**6, backend=backend)
+        policy = _policy(env) if with_policy else None
+
+        def run() -> int:
+            env.rollout(steps, policy, break_when_any_done=False)
+            return batch * steps
+
+        return run
+
+    return setup
+
+
+def _env_step_only(name: str, batch: int, steps: int, raw: bool):
+    """``steps`` calls of the base env's ``_step`` (raw) or ``step`` on a fixed action."""
+
+    def setup():
+        env = make_env(name, batch, seed=0, horizon=10**6).base_env
+        td = env.reset()
+        td["action"] = env.action_spec.rand()
+        step = env._step if raw else env.step
+
+        def run() -> int:
+            for _ in range(steps):
+                step(td)
+            return batch * steps
+
+        return run
+
+    return setup
+
+
+def _bare_point_loop(batch: int, steps: int):
+    """The reference for point_nav: the policy's own modules and the point update, no TorchRL env in between."""
+
+    def setup():
+        net = (
+            _policy(make_env("point_nav", 1)).module[0].module
+        )  # MLP + state-independent scale -> (loc, scale)
+
+        def run() -> int:
+            pos = torch.zeros(batch, 2)
+            obs, actions, log_probs = [], [], []
+            for _ in range(steps):
+                loc, scale = net(pos)
+                action = loc + scale * torch.randn_like(loc)
+                log_probs.append(torch.distributions.Normal(loc, scale).log_prob(action).sum(-1))
+                obs.append(pos)
+                actions.append(action)
+                pos = pos + 0.1 * action.clamp(-1.0, 1.0)
+            torch.stack(obs, 1), torch.stack(actions, 1), torch.stack(log_probs, 1)
+            return batch * steps
+
+        return run
+
+    return setup
+
+
+def _collector(name: str, batch: int, steps: int):
+    def setup():
+        env = make_env(name, batch, seed=0, horizon=10**6)
+        collector = Collector(
+            env,
+            _policy(env),
+            frames_per_batch=batch * steps,
+            total_frames=-1,
+            auto_register_policy_transforms=False,
+        )
+        batches = iter(collector)
+
+        def run() -> int:
+            return next(batches).numel()
+
+        return run
+
+    return setup
+
+
+def _physics_limit(name: str, batch: int, steps: int, threads: int):
+    """``mujoco.rollout`` of ``batch`` copies for ``steps`` env steps (frame_skip substeps each), random controls."""
+
+    def setup():
+        model = BATCHED_ENVS[name](1).model
+        spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+        data = mujoco.MjData(model)
+        state0 = np.empty((batch, mujoco.mj_stateSize(model, spec)))
+        mujoco.mj_getState(model, data, state0[0], spec)
+        state0[:] = state0[0]
+        nstep = MODEL_SPECS[name].frame_skip * steps
+        rng = np.random.default_rng(0)
+        control = np.repeat(
+            rng.uniform(-1, 1, (batch, steps, model.nu)), MODEL_SPECS[name].frame_skip, axis=1
+        )
+        out_state = np.empty((batch, nstep, state0.shape[1]))
+        out_sensor = np.empty((batch, nstep, model.nsensordata))
+        pool = mujoco.rollout.Rollout(nthread=threads if threads > 1 else 0)
+        datas = [mujoco.MjData(model) for _ in range(max(threads, 1))]
+        models = [model] * batch
+
+        def run() -> int:
+            pool.rollout(
+                models,
+                datas,
+                state0,
+                control,
+                nstep=nstep,
+                state=out_state,
+                sensordata=out_sensor,
+                skip_checks=True,
+            )
+            return batch * steps
+
+        return run
+
+    return setup
+
+
+def _bare_gym_vector(name: str, batch: int, steps: int):
+    def setup():
+        spec = MODEL_SPECS[name]
+        envs = gymnasium.make_vec(
+            spec.gym_id,
+            num_envs=batch,
+            vectorization_mode="sync",
+            vector_kwargs={"autoreset_mode": gymnasium.vector.AutoresetMode.DISABLED},
+            **spec.gym_kwargs,
+        )
+        envs.reset(seed=0)
+        actions = (
+            np.random.default_rng(0).uniform(-1, 1, (steps, *envs.action_space.shape)).astype(np.float32)
+        )
+
+        def run() -> int:
+            for action in actions:
+                envs.step(action)
+            return batch * steps
+
+        return run
+
+    return setup
+
+
+def build_benchmarks(args) -> list[Bench]:
+    benches: list[Bench] = []
+    if "point_nav" in args.envs:
+        steps = 100 if args.quick else args.point_steps
+        for b in args.point_batches:
+            benches += [
+                (
+                    "point_nav",
+                    b,
+                    "env._step alone (raw torch)",
+                    False,
+                    _env_step_only("point_nav", b, steps, True),
+                ),
+                (
+                    "point_nav",
+                    b,
+                    "env.step alone (TorchRL)",
+                    False,
+                    _env_step_only("point_nav", b, steps, False),
+                ),
+                ("point_nav", b, "bare torch loop + policy", True, _bare_point_loop(b, steps)),
+                (
+                    "point_nav",
+                    b,
+                    "env.rollout + policy",
+                    False,
+                    _rollout("point_nav", b, steps, "default", True),
+                ),
+                ("point_nav", b, "Collector + policy", False, _collector("point_nav", b, steps)),
+            ]
+    for name in ("half_cheetah", "ant"):
+        if name not in args.envs:
+            continue
+        for b in args.mujoco_batches:
+            steps = max(2, (args.mujoco_steps // (4 if name == "ant" else 1)) // (4 if args.quick else 1))
+            benches += [
+                (
+                    name,
+                    b,
+                    f"mujoco.rollout open loop, {args.threads} thr",
+                    True,
+                    _physics_limit(name, b, steps, args.threads),
+                ),
+                (name, b, GYM_VEC, False, _bare_gym_vector(name, b, steps)),
+                (name, b, "gym backend + policy", False, _rollout(name, b, steps, "gym", True)),
+                (name, b, "batched backend + policy", False, _rollout(name, b, steps, "batched", True)),
+                (name, b, "batched backend alone", False, _rollout(name, b, steps, "batched", False)),
+            ]
+    return benches
+
+
+def run_benchmarks(benches: list[Bench], repeats: int) -> dict[int, list[float]]:
+    """Median-ready steps/s: ``{bench index: [steps/s per repeat]}``, configurations interleaved."""
+    runs = {}
+    for i, (*_, setup) in enumerate(benches):
+        runs[i] = setup()
+        runs[i]()  # warm-up, untimed
+    rates: dict[int, list[float]] = {i: [] for i in runs}
+    for _ in range(repeats):
+        for i, run in runs.items():
+            start = time.perf_counter()
+            n = run()
+            rates[i].append(n / (time.perf_counter() - start))
+    return rates
+
+
+def format_table(benches: list[Bench], rates: dict[int, list[float]]) -> str:
+    """One row per configuration: median, spread, ratio to the ``ref`` row and, for MuJoCo, to bare gymnasium."""
+    medians = [statistics.median(rates[i]) for i in range(len(benches))]
+    ref = {(e, b): medians[i] for i, (e, b, _, is_ref, _) in enumerate(benches) if is_ref}
+    gym_vec = {(e, b): medians[i] for i, (e, b, label, *_) in enumerate(benches) if label.startswith(GYM_VEC)}
+    header = f"{'env':<13}{'B':>6}  {'configuration':<36}{'median steps/s':>15}{'min .. max':>26}"
+    lines = [header + f"{'x ref':>7}{'x gym vec':>11}"]
+    for i, (env, b, label, is_ref, _) in enumerate(benches):
+        spread = f"{min(rates[i]):,.0f} .. {max(rates[i]):,.0f}"
+        ratio = "ref" if is_ref else f"{medians[i] / ref[(env, b)]:.2f}"
+        vs_gym = f"{medians[i] / gym_vec[(env, b)]:.2f}" if (env, b) in gym_vec else "-"
+        lines.append(f"{env:<13}{b:>6}  {label:<36}{medians[i]:>15,.0f}{spread:>26}{ratio:>7}{vs_gym:>11}")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--envs", nargs="+", choices=ALL_ENVS, default=list(ALL_ENVS))
+    parser.add_argument("--quick", action="store_true", help="2 repeats and fewer steps per repeat")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--point-batches", type=int, nargs="+", default=[100, 800, 4000])
+    parser.add_argument("--point-steps", type=int, default=200)
+    parser.add_argument("--mujoco-batches", type=int, nargs="+", default=[20, 800])
+    parser.add_argument("--mujoco-steps", type=int, default=40, help="env steps per repeat (ant: a quarter)")
+    parser.add_argument(
+        "--threads", type=int, default=NUM_CPUS, help="mujoco.rollout threads (physics limit)"
+    )
+    parser.add_argument("--torch-threads", type=int, default=1, help="torch intra-op threads (policy)")
+    args = parser.parse_args()
+    torch.set_num_threads(args.torch_threads)
+    repeats = 2 if args.quick else args.repeats
+    torch.manual_seed(0)
+    benches = build_benchmarks(args)
+    print(
+        f"umrl throughput: {NUM_CPUS} CPUs usable, torch threads {torch.get_num_threads()}, "
+        f"{repeats} interleaved repeats, medians; ratios are to the 'ref' row of the same env and B."
+    )
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+        rates = run_benchmarks(benches, repeats)
+    print(format_table(benches, rates))
+
+
+if __name__ == "__main__":
+    main()
