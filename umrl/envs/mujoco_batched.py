@@ -85,7 +85,8 @@ class BatchedMujocoEnv(EnvBase):
     """
 
     NAME: str = ""
-    _observe_contacts = False
+    # Ant reads the torso body's position and the contact forces (computed by mj_rnePostConstraint after the step).
+    _reads_body_and_contacts = False
     batch_locked = True
 
     def __init__(
@@ -170,15 +171,15 @@ class BatchedMujocoEnv(EnvBase):
 
     # --------------------------------------------------------------------------------------------------- physics
     def _advance(self, rows) -> None:
-        model, nstep, contacts = self.model, self._frame_skip, self._observe_contacts
+        model, nstep, extras = self.model, self._frame_skip, self._reads_body_and_contacts
         for d, ctrl, ctrl_dst, qstate, body_xy, cfrc, xpos_src, cfrc_src in rows:
             ctrl_dst[:] = ctrl
             mujoco.mj_step(model, d, nstep)
-            if contacts:  # as gymnasium's MujocoEnv._step_mujoco_simulation (needed for cfrc_ext)
+            mujoco.mj_getState(model, d, qstate, _QSTATE)
+            if extras:  # the mj_rnePostConstraint call is gymnasium's MujocoEnv._step_mujoco_simulation's
                 mujoco.mj_rnePostConstraint(model, d)
                 cfrc[:] = cfrc_src
-            mujoco.mj_getState(model, d, qstate, _QSTATE)
-            body_xy[:] = xpos_src
+                body_xy[:] = xpos_src
 
     def _read(self, rows) -> None:
         """Refresh the state buffers of ``rows`` after a reset or :meth:`set_mj_state`."""
@@ -301,7 +302,7 @@ class AntBatchedEnv(BatchedMujocoEnv):
     """
 
     NAME = "ant"
-    _observe_contacts = True
+    _reads_body_and_contacts = True
     FORWARD_REWARD_WEIGHT = 1.0
     CTRL_COST_WEIGHT = 0.5
     CONTACT_COST_WEIGHT = 5e-4
