@@ -218,6 +218,9 @@ def train(cfg: DictConfig) -> dict:
         tic = time.perf_counter()
         bonus(batch)  # ("next", "reward") <- 0 + eta * info gain / median, from the model before it sees the batch
         bonus_s = time.perf_counter() - tic
+        if cfg.bonus.shuffle:  # control run: same bonus values, no link to the transitions that earned them
+            reward = batch["next", "reward"]
+            reward[batch["mask"]] = reward[batch["mask"]][torch.randperm(int(batch["mask"].sum()))]
         valid = batch[batch["mask"]].select(*TRANSITION_KEYS)
         held = torch.rand(valid.shape[0]) < dyn.holdout_fraction
         replay = append(replay, valid[~held], dyn.replay_size)

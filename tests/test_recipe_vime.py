@@ -69,6 +69,8 @@ def test_resume_without_checkpoint_and_bad_config(tmp_path):
         recipe.train(tiny_config(tmp_path, "resume=true"))
     with pytest.raises(ValueError, match="holdout_fraction"):
         recipe.train(tiny_config(tmp_path, "dynamics.holdout_fraction=0"))
+    control = recipe.train(tiny_config(tmp_path / "control", "bonus.shuffle=true", "iterations=1"))
+    assert control["bonus/intrinsic_return"] == pytest.approx(control["bonus/intrinsic_mean"] * 10, rel=1e-4)
     torch.save({"format": "other"}, tmp_path / "step_1.pt")
     with pytest.raises(ValueError, match="not a VIME checkpoint"):
         load_vime_policy(tmp_path / "step_1.pt")
