@@ -140,6 +140,8 @@ class DIAYNLoss(LossModule):
             target_entropy=0.0 if fixed_alpha else target_entropy,
             action_spec=action_spec,
         )
+        # SACLoss registers its target-entropy buffer lazily; materialise it so state dicts round-trip.
+        _ = self.sac_loss.target_entropy
         self.discriminator = discriminator
         self._forward_value_estimator_keys()
 

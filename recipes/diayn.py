@@ -1,0 +1,253 @@
+"""DIAYN on a reward-free env: skill-conditioned SAC + a skill discriminator (the UMRL task proposal).
+
+    python recipes/diayn.py env.name=point_nav                       # 50 skills, PROTOCOL.md defaults
+    python recipes/diayn.py env.name=half_cheetah logger.backend=csv
+    python recipes/diayn.py env.name=point_nav resume=true           # continue from the latest checkpoint
+
+Data flow: ``make_env`` -> ``SkillTransform`` (one uniform one-hot skill per episode) -> ``DiscriminatorReward``
+(log D(z|s') + log K, for the logged returns) -> TorchRL ``Collector`` -> replay buffer -> ``DIAYNLoss`` (relabels
+every sampled batch with the current discriminator, SAC + discriminator cross-entropy) -> Adam; target Q-networks
+by ``SoftUpdate``.
+
+Logged (namespaced): ``train/`` losses, ``discriminator_accuracy`` (on replay samples), ``pseudo_reward``,
+``entropy``, ``episode_return`` (undiscounted pseudo-return of finished episodes); ``eval/`` on fresh rollouts of
+every skill: ``final_state_accuracy`` (argmax D(z|s_T) == z), spread of the skills' end points
+(``end_pairwise_distance``, ``centroid_pairwise_distance``, ``centroid_hull_area`` in 2-D, ``centroid_std``/``range``
+for half_cheetah's velocities), the same for a uniformly random policy under ``eval/random_*`` (once);
+``time/`` env steps/s, updates/s, elapsed seconds. The coverage figure goes to ``<output_dir>/figures/``.
+
+Checkpoints: ``<output_dir>/checkpoints/step_<frames>.pt`` every ``checkpoint.every`` frames and at the end, format
+``umrl.diayn.v1`` documented in :mod:`umrl.diayn_checkpoint`; load the results with
+``umrl.diayn_checkpoint.load_discriminator(path)`` -> (D, num_skills, obs_dim) and ``load_skill_policy(path)`` ->
+(actor, num_skills, obs_dim). ``resume=true`` restores networks, optimisers, counters and the RNG; the replay buffer
+is not saved: it refills with the restored policy's data (``collector.init_random_frames`` frames) before updates
+resume.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import hydra
+import torch
+import tqdm
+from omegaconf import DictConfig
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.envs import RewardSum
+from torchrl.objectives import SoftUpdate
+
+from umrl.diayn_checkpoint import FORMAT
+from umrl.envs import make_env
+from umrl.envs.tasks import get_task_family
+from umrl.modules.discriminator import make_discriminator
+from umrl.modules.sac import make_skill_actor, make_skill_qvalue
+from umrl.objectives.diayn import DIAYNLoss
+from umrl.runtime import (
+    Checkpointer,
+    check_finite,
+    log_image,
+    log_metrics,
+    make_logger,
+    seed_everything,
+    to_container,
+)
+from umrl.skill_coverage import coverage_metrics, evaluate_skills, plot_coverage
+from umrl.transforms.discriminator_reward import DiscriminatorReward
+from umrl.transforms.skill import SkillTransform
+
+DEFAULT_SKILLS = {"point_nav": 50, "half_cheetah": 20, "ant": 20}
+
+
+def resolve_num_skills(cfg: DictConfig) -> int:
+    num_skills = cfg.num_skills if cfg.num_skills is not None else DEFAULT_SKILLS.get(cfg.env.name)
+    if num_skills is None:
+        raise ValueError(f"unknown env {cfg.env.name!r}; valid choices: {sorted(DEFAULT_SKILLS)}.")
+    if int(num_skills) != num_skills or num_skills < 2:
+        raise ValueError(f"num_skills must be an integer >= 2 (DIAYN needs skills to tell apart), got {num_skills}.")
+    return int(num_skills)
+
+
+def check_config(cfg: DictConfig) -> None:
+    positive = {
+        "env.num_envs": cfg.env.num_envs, "collector.total_frames": cfg.collector.total_frames,
+        "collector.frames_per_batch": cfg.collector.frames_per_batch, "replay_buffer.batch_size":
+        cfg.replay_buffer.batch_size, "optim.updates_per_frame": cfg.optim.updates_per_frame,
+        "eval.every": cfg.eval.every, "eval.episodes_per_skill": cfg.eval.episodes_per_skill,
+        "checkpoint.every": cfg.checkpoint.every,
+    }
+    bad = {name: value for name, value in positive.items() if not value > 0}
+    if bad:
+        raise ValueError(f"these config values must be positive: {bad}.")
+    if cfg.collector.frames_per_batch % cfg.env.num_envs:
+        raise ValueError(
+            f"collector.frames_per_batch ({cfg.collector.frames_per_batch}) must be a multiple of env.num_envs "
+            f"({cfg.env.num_envs})."
+        )
+
+
+def make_skill_env(cfg: DictConfig, num_envs: int, num_skills: int, seed: int, discriminator=None):
+    env = make_env(cfg.env.name, num_envs, seed=seed, device=cfg.device, horizon=cfg.env.horizon,
+                   backend=cfg.env.backend)
+    env.append_transform(SkillTransform(num_skills))
+    if discriminator is not None:
+        env.append_transform(DiscriminatorReward(discriminator, num_skills))
+        env.append_transform(RewardSum())
+    return env
+
+
+def evaluate(cfg, env, actor, discriminator, num_skills, step, figure_path, logger, baseline) -> dict:
+    """Fresh rollouts of every skill: coverage metrics, final-state accuracy, the figure at ``figure_path``."""
+    result = evaluate_skills(env, actor, env_name=cfg.env.name, num_skills=num_skills,
+                             episodes_per_skill=cfg.eval.episodes_per_skill, horizon=cfg.env.horizon)
+    metrics = {f"eval/{k}": v for k, v in coverage_metrics(result, num_skills, discriminator).items()}
+    eval_tasks = get_task_family(cfg.env.name).eval_tasks()
+    figure = plot_coverage(result, num_skills, eval_tasks, figure_path,
+                           title=f"DIAYN {cfg.env.name}, {num_skills} skills, {step} env steps", baseline=baseline)
+    log_image(logger, "eval/skill_coverage", figure, step)
+    return metrics
+
+
+def train(cfg: DictConfig) -> dict:
+    """Run DIAYN as configured; return the last logged metrics (also the final evaluation)."""
+    check_config(cfg)
+    num_skills = resolve_num_skills(cfg)
+    torch.set_num_threads(cfg.num_threads)
+    seed_everything(cfg.seed)
+    out_dir = Path(cfg.output_dir)
+    checkpointer = Checkpointer(out_dir / "checkpoints", keep_all=cfg.checkpoint.keep_all)
+    state = checkpointer.load() if cfg.resume else None  # FileNotFoundError says what is missing
+
+    # --- networks, loss, optimisers -------------------------------------------------------------------
+    probe = make_env(cfg.env.name, 1, horizon=cfg.env.horizon, backend=cfg.env.backend)
+    obs_dim, act_dim = probe.observation_spec["observation"].shape[-1], probe.action_spec.shape[-1]
+    probe.close()
+    hidden, disc_hidden = list(cfg.network.hidden), list(cfg.network.discriminator_hidden)
+    actor = make_skill_actor(obs_dim, num_skills, act_dim, hidden=hidden)
+    discriminator = make_discriminator(obs_dim, num_skills, hidden=disc_hidden)
+    loss = DIAYNLoss(actor, make_skill_qvalue(obs_dim, num_skills, act_dim, hidden=hidden), discriminator,
+                     num_skills=num_skills, alpha_init=cfg.optim.alpha, fixed_alpha=cfg.optim.fixed_alpha,
+                     target_entropy=-float(act_dim))
+    loss.make_value_estimator(gamma=cfg.optim.gamma)
+    target_updater = SoftUpdate(loss.sac_loss, tau=cfg.optim.tau)
+    sac = loss.sac_loss
+    optimizers = {
+        "actor": torch.optim.Adam(sac.actor_network_params.values(True, True), lr=cfg.optim.lr),
+        "qvalue": torch.optim.Adam(sac.qvalue_network_params.values(True, True), lr=cfg.optim.lr),
+        "discriminator": torch.optim.Adam(discriminator.parameters(), lr=cfg.optim.discriminator_lr),
+    }
+    if not cfg.optim.fixed_alpha:
+        optimizers["alpha"] = torch.optim.Adam([sac.log_alpha], lr=cfg.optim.lr)
+    counters = {"frames": 0, "updates": 0, "next_eval": cfg.eval.every, "next_checkpoint": cfg.checkpoint.every}
+    if state is not None:
+        loss.load_state_dict(state["loss"])
+        for name, optimizer in optimizers.items():
+            optimizer.load_state_dict(state["optimizers"][name])
+        counters.update(state["counters"])
+        torch.set_rng_state(state["rng"])
+    meta = {"env": cfg.env.name, "obs_dim": obs_dim, "act_dim": act_dim, "num_skills": num_skills,
+            "hidden": hidden, "discriminator_hidden": disc_hidden,
+            "discriminator_observation_key": ["next", "observation"]}
+
+    def save() -> Path:
+        return checkpointer.save({
+            "format": FORMAT, "meta": meta, "actor": actor.state_dict(), "discriminator": discriminator.state_dict(),
+            "loss": loss.state_dict(), "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
+            "counters": dict(counters), "rng": torch.get_rng_state(), "config": to_container(cfg),
+        }, counters["frames"], cfg)
+
+    # --- data -----------------------------------------------------------------------------------------
+    env = make_skill_env(cfg, cfg.env.num_envs, num_skills, cfg.seed, discriminator)
+    eval_env = make_skill_env(cfg, num_skills * cfg.eval.episodes_per_skill, num_skills, cfg.seed + 10_000)
+    remaining = cfg.collector.total_frames - counters["frames"]
+    if remaining <= 0:
+        raise ValueError(f"nothing to do: the checkpoint already has {counters['frames']} frames >= "
+                         f"collector.total_frames={cfg.collector.total_frames}; raise collector.total_frames.")
+    collector = Collector(
+        env, actor, frames_per_batch=cfg.collector.frames_per_batch, total_frames=remaining,
+        init_random_frames=0 if state is not None else cfg.collector.init_random_frames,
+        auto_register_policy_transforms=False,
+    )
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(cfg.replay_buffer.size),
+                                    batch_size=cfg.replay_buffer.batch_size)
+    warmup = max(cfg.collector.init_random_frames, cfg.replay_buffer.batch_size)
+
+    logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, config=cfg, log_dir=out_dir)
+    baseline = evaluate_skills(eval_env, None, env_name=cfg.env.name, num_skills=num_skills,
+                               episodes_per_skill=cfg.eval.episodes_per_skill, horizon=cfg.env.horizon)
+    random_metrics = {f"eval/random_{k}": v for k, v in coverage_metrics(baseline, num_skills, discriminator).items()}
+    log_metrics(logger, random_metrics, counters["frames"])
+
+    # --- loop -----------------------------------------------------------------------------------------
+    progress = tqdm.tqdm(total=cfg.collector.total_frames, initial=counters["frames"], disable=not cfg.progress,
+                         unit="frames", desc=f"DIAYN {cfg.env.name}")
+    update_credit, metrics, start = 0.0, {}, time.perf_counter()
+    collect_start = time.perf_counter()
+    for data in collector:
+        collect_time = time.perf_counter() - collect_start
+        data = data.reshape(-1)
+        buffer.extend(data)
+        counters["frames"] += data.numel()
+        progress.update(data.numel())
+
+        update_start, logs = time.perf_counter(), []
+        if len(buffer) >= warmup:
+            update_credit += data.numel() * cfg.optim.updates_per_frame
+            for _ in range(int(update_credit)):
+                out = loss(buffer.sample())
+                losses = {k: v for k, v in out.items() if k.startswith("loss_")}
+                check_finite(losses, f"DIAYN update {counters['updates']}")
+                for optimizer in optimizers.values():
+                    optimizer.zero_grad(set_to_none=True)
+                sum(losses.values()).backward()
+                for optimizer in optimizers.values():
+                    optimizer.step()
+                target_updater.step()
+                logs.append(out.detach())
+                counters["updates"] += 1
+            update_credit -= int(update_credit)
+        update_time = time.perf_counter() - update_start
+
+        metrics = {"time/env_steps_per_s": data.numel() / max(collect_time, 1e-9),
+                   "time/elapsed_s": time.perf_counter() - start, "train/frames": counters["frames"],
+                   "train/updates": counters["updates"]}
+        if logs:
+            mean = torch.stack(logs).float().mean()
+            metrics.update({f"train/{k}": float(v) for k, v in mean.items()})
+            metrics["time/updates_per_s"] = len(logs) / max(update_time, 1e-9)
+        finished = data["next", "done"].squeeze(-1)
+        if finished.any():
+            metrics["train/episode_return"] = float(data["next", "episode_reward"][finished].mean())
+        if counters["frames"] >= counters["next_eval"]:
+            figure_path = out_dir / "figures" / f"skill_coverage_{counters['frames']}.png"
+            metrics.update(evaluate(cfg, eval_env, actor, discriminator, num_skills, counters["frames"], figure_path,
+                                    logger, baseline))
+            counters["next_eval"] += cfg.eval.every
+        log_metrics(logger, metrics, counters["frames"])
+        progress.set_postfix({k.split("/")[-1]: f"{v:.3g}" for k, v in metrics.items()
+                              if k in ("train/discriminator_accuracy", "train/pseudo_reward",
+                                       "eval/final_state_accuracy")})
+        if counters["frames"] >= counters["next_checkpoint"]:
+            save()
+            counters["next_checkpoint"] += cfg.checkpoint.every
+        collect_start = time.perf_counter()
+    collector.shutdown()
+    progress.close()
+
+    final = evaluate(cfg, eval_env, actor, discriminator, num_skills, counters["frames"],
+                     out_dir / "figures" / "skill_coverage.png", logger, baseline)
+    log_metrics(logger, final, counters["frames"])
+    path = save()
+    env.close()
+    eval_env.close()
+    return {**metrics, **final, **random_metrics, "checkpoint": str(path)}
+
+
+@hydra.main(version_base="1.3", config_path="config", config_name="diayn")
+def main(cfg: DictConfig) -> None:
+    result = train(cfg)
+    print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in result.items()})
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,108 @@
+"""Smoke tests of recipes/diayn.py: a tiny run completes, checkpoints, resumes, draws the coverage figure."""
+import importlib.util
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from tensordict import TensorDict
+
+from umrl.diayn_checkpoint import load_diayn_checkpoint, load_discriminator, load_skill_policy
+from umrl.envs import ENV_NAMES
+
+ROOT = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
+
+
+def load_recipe():
+    spec = importlib.util.spec_from_file_location("diayn_recipe", ROOT / "recipes" / "diayn.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def tiny_config(output_dir, *overrides):
+    with initialize_config_dir(config_dir=str(ROOT / "recipes" / "config"), version_base="1.3"):
+        return compose("diayn", overrides=[
+            "logger.backend=none", "progress=false", f"output_dir={output_dir}", "num_skills=3",
+            "env.num_envs=4", "env.horizon=10", "collector.frames_per_batch=40", "collector.total_frames=120",
+            "collector.init_random_frames=40", "optim.updates_per_frame=0.25", "network.hidden=[16,16]",
+            "network.discriminator_hidden=[16]", "replay_buffer.batch_size=16", "eval.every=80",
+            "eval.episodes_per_skill=2", "checkpoint.every=80", *overrides,
+        ])
+
+
+def mujoco_available(name):
+    try:
+        from umrl.envs import make_env
+
+        make_env(name, 1).close()
+    except (ImportError, ModuleNotFoundError):
+        return False
+    return True
+
+
+ENVS = ["point_nav"] + [name for name in ENV_NAMES if name == "half_cheetah" and mujoco_available(name)]
+
+
+@pytest.mark.parametrize("env_name", ENVS)
+def test_run_checkpoint_resume_figure(tmp_path, env_name):
+    recipe = load_recipe()
+    result = recipe.train(tiny_config(tmp_path, f"env.name={env_name}"))
+    assert 0.0 <= result["eval/final_state_accuracy"] <= 1.0
+    assert (tmp_path / "figures" / "skill_coverage.png").stat().st_size > 1000
+    assert (tmp_path / "figures" / "skill_coverage_80.png").is_file()
+    first = load_diayn_checkpoint(tmp_path)
+    assert first["counters"]["frames"] == 120 and first["counters"]["updates"] > 0
+    assert (tmp_path / "checkpoints" / "config.yaml").is_file()
+
+    resumed = recipe.train(tiny_config(tmp_path, f"env.name={env_name}", "resume=true", "collector.total_frames=200"))
+    second = load_diayn_checkpoint(tmp_path)
+    assert second["counters"]["frames"] == 200
+    assert second["counters"]["updates"] > first["counters"]["updates"]
+    assert resumed["train/frames"] == 200
+
+    discriminator, num_skills, obs_dim = load_discriminator(tmp_path)
+    actor, num_skills_actor, obs_dim_actor = load_skill_policy(tmp_path / "checkpoints")
+    assert (num_skills, num_skills_actor) == (3, 3) and obs_dim == obs_dim_actor == second["meta"]["obs_dim"]
+    obs = torch.randn(5, obs_dim)
+    td = TensorDict({"observation": obs, "skill": torch.eye(3)[[0, 1, 2, 0, 1]]}, [5])
+    assert actor(td)["action"].shape == (5, second["meta"]["act_dim"])
+    weight = second["discriminator"]["module.0.weight"]
+    torch.testing.assert_close(discriminator.module[0].weight, weight)
+    assert not any(p.requires_grad for p in discriminator.parameters())
+
+
+def test_resume_without_checkpoint_fails_clearly(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no checkpoint"):
+        load_recipe().train(tiny_config(tmp_path, "resume=true"))
+
+
+def test_cli_rejects_one_skill(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "recipes" / "diayn.py"), "num_skills=1", "logger.backend=none",
+         f"output_dir={tmp_path}"],
+        check=False, capture_output=True, text=True, timeout=120,
+    )
+    assert proc.returncode != 0
+    assert "num_skills must be an integer >= 2" in proc.stderr
+
+
+def test_coverage_metrics_on_known_points():
+    from umrl.skill_coverage import convex_hull_area, coverage_metrics, final_states
+
+    square = torch.tensor([[0.0, 0.0], [2.0, 0.0], [2.0, 2.0], [0.0, 2.0], [1.0, 1.0]])
+    assert convex_hull_area(square) == pytest.approx(4.0)
+    # two skills, two rollouts each, 3 steps; copy 0 ends early (done at t=1)
+    done = torch.tensor([[0, 1, 0], [0, 0, 1], [0, 0, 1], [0, 0, 1]], dtype=torch.bool)[..., None]
+    position = torch.arange(4 * 3 * 2, dtype=torch.float32).reshape(4, 3, 2)
+    rollout = TensorDict({"next": {"done": done, "position": position, "observation": position}}, [4, 3])
+    result = final_states(rollout, "point_nav")
+    torch.testing.assert_close(result["end_point"], position[[0, 1, 2, 3], [1, 2, 2, 2]])
+    result.set("skill", torch.tensor([0, 1, 0, 1]))
+    metrics = coverage_metrics(result, 2)
+    assert metrics["centroid_hull_area"] == 0.0 and metrics["centroid_pairwise_distance"] > 0
+    velocity = TensorDict({"next": {"done": done, "x_velocity": position[..., :1], "observation": position}}, [4, 3])
+    torch.testing.assert_close(final_states(velocity, "half_cheetah")["end_point"][0], position[0, :2, :1].mean(0))

@@ -1,0 +1,69 @@
+"""Reading the checkpoints written by ``recipes/diayn.py`` (format ``"umrl.diayn.v1"``).
+
+A checkpoint is a ``torch.save``'d dict:
+
+- ``"format"``: ``"umrl.diayn.v1"``;
+- ``"meta"``: ``env`` (name), ``obs_dim``, ``act_dim``, ``num_skills``, ``hidden`` (actor/Q widths),
+  ``discriminator_hidden``, ``discriminator_observation_key`` (``["next", "observation"]``: D scores s_{t+1});
+- ``"actor"``: state dict of :func:`umrl.modules.sac.make_skill_actor` ``(obs_dim, num_skills, act_dim,
+  hidden=hidden)``: reads ``"observation"`` and one-hot ``"skill"``, writes a tanh-Gaussian ``"action"`` in [-1, 1];
+- ``"discriminator"``: state dict of :func:`umrl.modules.discriminator.make_discriminator` ``(obs_dim,
+  num_skills, hidden=discriminator_hidden)``;
+- ``"loss"``: state dict of the :class:`~umrl.objectives.diayn.DIAYNLoss` (actor, twin Q-networks and their targets,
+  discriminator, alpha), ``"optimizers"``: ``{"actor", "qvalue", "discriminator"[, "alpha"]}`` Adam state dicts;
+- ``"counters"``: ``frames`` (env steps), ``updates``, ``next_eval``, ``next_checkpoint``; ``"rng"``: torch RNG state;
+- ``"config"``: the resolved recipe config (also written beside it as ``config.yaml``).
+
+Files are ``<output_dir>/checkpoints/step_<frames>.pt``; the final one of a run is the latest.
+"""
+from __future__ import annotations
+
+import os
+
+import torch
+from tensordict.nn import TensorDictModule
+from torchrl.modules import ProbabilisticActor
+
+from umrl.modules.discriminator import make_discriminator
+from umrl.modules.sac import make_skill_actor
+from umrl.runtime import resolve_checkpoint
+
+FORMAT = "umrl.diayn.v1"
+
+__all__ = ["FORMAT", "load_diayn_checkpoint", "load_discriminator", "load_skill_policy"]
+
+
+def load_diayn_checkpoint(path: str | os.PathLike) -> dict:
+    """Load a DIAYN checkpoint: a ``step_*.pt`` file, a ``checkpoints/`` folder or a run's output_dir (latest)."""
+    file = resolve_checkpoint(path)
+    state = torch.load(file, map_location="cpu", weights_only=False)
+    if not isinstance(state, dict) or state.get("format") != FORMAT:
+        found = state.get("format") if isinstance(state, dict) else type(state).__name__
+        raise ValueError(f"{file} is not a DIAYN checkpoint (format {found!r}, expected {FORMAT!r}).")
+    return state
+
+
+def load_discriminator(path: str | os.PathLike) -> tuple[TensorDictModule, int, int]:
+    """``(discriminator, num_skills, obs_dim)``: the trained D(z|s), frozen (``requires_grad=False``, eval mode).
+
+    It reads ``"observation"`` [*B, obs_dim] and writes ``"skill_logits"`` [*B, num_skills]; wrap it in
+    :class:`~umrl.transforms.discriminator_reward.DiscriminatorReward` for the UML-DIAYN task proposal.
+    """
+    state = load_diayn_checkpoint(path)
+    meta = state["meta"]
+    discriminator = make_discriminator(meta["obs_dim"], meta["num_skills"], hidden=meta["discriminator_hidden"])
+    discriminator.load_state_dict(state["discriminator"])
+    return discriminator.eval().requires_grad_(False), meta["num_skills"], meta["obs_dim"]
+
+
+def load_skill_policy(path: str | os.PathLike) -> tuple[ProbabilisticActor, int, int]:
+    """``(actor, num_skills, obs_dim)``: the trained skill-conditioned policy pi(a|s,z) (trainable, for fine-tuning).
+
+    Reads ``"observation"`` and a one-hot ``"skill"`` [*B, num_skills] (pin one with
+    :meth:`~umrl.transforms.skill.SkillTransform.pin`), writes ``"action"`` and ``"action_log_prob"``.
+    """
+    state = load_diayn_checkpoint(path)
+    meta = state["meta"]
+    actor = make_skill_actor(meta["obs_dim"], meta["num_skills"], meta["act_dim"], hidden=meta["hidden"])
+    actor.load_state_dict(state["actor"])
+    return actor, meta["num_skills"], meta["obs_dim"]

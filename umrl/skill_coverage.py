@@ -1,0 +1,222 @@
+"""Where do skills go? Final-state accuracy of the discriminator, spread metrics and the coverage figure.
+
+:func:`evaluate_skills` rolls out every skill ``episodes_per_skill`` times (skills pinned with
+:meth:`~umrl.transforms.skill.SkillTransform.pin`) and reads, per rollout, the *final* state (the first step whose
+``("next", "done")`` is set):
+
+- ``"end_point"`` [N, d]: the env's coverage coordinates: final x-y (point_nav ``"position"``, ant
+  ``"xy_position"``), or for half_cheetah the episode's mean forward velocity ``"x_velocity"`` (d = 1);
+- ``"final_observation"`` [N, obs_dim]: what the discriminator sees at the end of the episode.
+
+:func:`coverage_metrics` turns them into scalars (discriminator accuracy on final states; mean pairwise distance of
+all end points and of the per-skill centroids; convex-hull area of the centroids in 2-D, their std / range in 1-D).
+:func:`plot_coverage` draws the paper's Figure 5 analogue with the held-out evaluation tasks overlaid.
+"""
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+__all__ = ["COVERAGE_KEYS", "convex_hull_area", "coverage_metrics", "evaluate_skills", "final_states", "plot_coverage"]
+
+# env name -> (physics key, reduction over the episode): "last" for positions, "mean" for velocities
+COVERAGE_KEYS = {
+    "point_nav": ("position", "last"),
+    "ant": ("xy_position", "last"),
+    "half_cheetah": ("x_velocity", "mean"),
+}
+
+
+def _coverage_key(env_name: str) -> tuple[str, str]:
+    if env_name not in COVERAGE_KEYS:
+        raise ValueError(f"no coverage coordinates for env {env_name!r}; known: {sorted(COVERAGE_KEYS)}.")
+    return COVERAGE_KEYS[env_name]
+
+
+def final_states(rollout: TensorDictBase, env_name: str) -> TensorDict:
+    """Per-rollout final observation and coverage point from a rollout [N, T] (time last in the batch dims).
+
+    The episode ends at the first ``("next", "done")``; the rollout must contain one for each copy (run it for the
+    env's horizon).
+    """
+    done = rollout.get(("next", "done")).squeeze(-1)  # [N, T]
+    if not done.any(-1).all():
+        raise ValueError("every rollout must contain a done step: roll out for at least the env's horizon.")
+    last = done.float().argmax(-1)  # first done
+    index = torch.arange(done.shape[0])
+    key, reduction = _coverage_key(env_name)
+    values = rollout.get(("next", key))  # [N, T, d]
+    if reduction == "last":
+        end_point = values[index, last]
+    else:
+        alive = (torch.arange(done.shape[1])[None] <= last[:, None]).unsqueeze(-1)
+        end_point = (values * alive).sum(1) / alive.sum(1)
+    return TensorDict(
+        {"end_point": end_point, "final_observation": rollout.get(("next", "observation"))[index, last]},
+        batch_size=[done.shape[0]],
+    )
+
+
+def evaluate_skills(
+    env: EnvBase,
+    policy: Callable | None,
+    *,
+    env_name: str,
+    num_skills: int,
+    episodes_per_skill: int,
+    horizon: int,
+    exploration: ExplorationType = ExplorationType.RANDOM,
+) -> TensorDict:
+    """Roll out skill ``i % num_skills`` in env copy ``i`` for ``horizon`` steps; returns :func:`final_states` plus
+    ``"skill"`` [N] (LongTensor).
+
+    ``env`` must have ``num_skills * episodes_per_skill`` copies and a :class:`~umrl.transforms.skill.SkillTransform`;
+    ``policy=None`` takes uniformly random actions (the random-policy baseline). The pin is removed afterwards.
+    """
+    from umrl.transforms.skill import SkillTransform
+
+    transforms = getattr(env.transform, "transforms", [env.transform])
+    skill_transforms = [t for t in transforms if isinstance(t, SkillTransform)]
+    if not skill_transforms:
+        raise ValueError("evaluate_skills needs an env with a SkillTransform.")
+    if env.batch_size != (num_skills * episodes_per_skill,):
+        raise ValueError(
+            f"the env has batch {tuple(env.batch_size)}; expected ({num_skills * episodes_per_skill},) = "
+            "num_skills * episodes_per_skill copies."
+        )
+    skills = torch.arange(num_skills).repeat(episodes_per_skill)
+    transform = skill_transforms[0]
+    transform.pin(skills)
+    try:
+        with torch.no_grad(), set_exploration_type(exploration):
+            rollout = env.rollout(horizon, policy, break_when_any_done=False)
+    finally:
+        transform.pin(None)
+    out = final_states(rollout, env_name)
+    out.set("skill", skills)
+    return out
+
+
+def convex_hull_area(points: torch.Tensor) -> float:
+    """Area of the convex hull of 2-D ``points`` [N, 2] (Andrew's monotone chain); 0 for fewer than 3 points."""
+    pts = sorted(set(map(tuple, points.double().tolist())))
+    if len(pts) < 3:
+        return 0.0
+
+    def cross(o, a, b):
+        return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+    def half(seq):
+        chain = []
+        for p in seq:
+            while len(chain) >= 2 and cross(chain[-2], chain[-1], p) <= 0:
+                chain.pop()
+            chain.append(p)
+        return chain[:-1]
+
+    hull = half(pts) + half(reversed(pts))
+    return 0.5 * abs(sum(a[0] * b[1] - b[0] * a[1] for a, b in zip(hull, hull[1:] + hull[:1])))
+
+
+def _mean_pairwise_distance(points: torch.Tensor) -> float:
+    if points.shape[0] < 2:
+        return 0.0
+    distances = torch.cdist(points.double(), points.double())
+    n = points.shape[0]
+    return float(distances.sum() / (n * (n - 1)))
+
+
+def coverage_metrics(result: TensorDictBase, num_skills: int, discriminator: Callable | None = None) -> dict:
+    """Scalars from :func:`evaluate_skills`' output.
+
+    Keys: ``end_pairwise_distance`` (all rollouts), ``centroid_pairwise_distance`` (per-skill mean end points),
+    ``centroid_hull_area`` (2-D) or ``centroid_std`` / ``centroid_range`` (1-D), ``within_skill_std`` (mean over
+    skills of the end points' std), and with a ``discriminator`` (a TensorDictModule over the observation) the
+    ``final_state_accuracy`` of argmax D(z|s_T).
+    """
+    end = result.get("end_point").float()
+    skills = result.get("skill")
+    centroids = torch.stack([end[skills == k].mean(0) for k in range(num_skills)])
+    spread = torch.stack([end[skills == k].std(0, unbiased=False).norm() for k in range(num_skills)])
+    metrics = {
+        "end_pairwise_distance": _mean_pairwise_distance(end),
+        "centroid_pairwise_distance": _mean_pairwise_distance(centroids),
+        "within_skill_std": float(spread.mean()),
+    }
+    if end.shape[-1] == 2:
+        metrics["centroid_hull_area"] = convex_hull_area(centroids)
+    else:
+        metrics["centroid_std"] = float(centroids.std(unbiased=False))
+        metrics["centroid_range"] = float(centroids.max() - centroids.min())
+    if discriminator is not None:
+        obs = result.get("final_observation")
+        with torch.no_grad():
+            td = TensorDict({discriminator.in_keys[0]: obs}, batch_size=obs.shape[:-1])
+            logits = discriminator(td).get(discriminator.out_keys[0])
+        metrics["final_state_accuracy"] = float((logits.argmax(-1) == skills).float().mean())
+    return metrics
+
+
+def plot_coverage(
+    result: TensorDictBase,
+    num_skills: int,
+    eval_tasks: torch.Tensor,
+    path: str | os.PathLike,
+    *,
+    title: str = "",
+    baseline: TensorDictBase | None = None,
+) -> str:
+    """Save the coverage figure as a PNG at ``path`` and return the path.
+
+    2-D end points: a scatter of every rollout's final x-y coloured by skill, skill centroids as larger dots, the
+    held-out evaluation goals as red crosses (and a random policy's end points in grey if ``baseline`` is given).
+    1-D (velocities): histograms of the rollouts' mean velocities (blue), of the evaluation velocities (green) and of
+    the baseline (grey).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    end = result.get("end_point").float()
+    skills = result.get("skill")
+    fig, ax = plt.subplots(figsize=(6, 5))
+    if end.shape[-1] == 2:
+        if baseline is not None:
+            b = baseline.get("end_point")
+            ax.scatter(b[:, 0], b[:, 1], s=6, c="0.7", label="random policy")
+        colors = plt.get_cmap("hsv")(torch.linspace(0, 1, num_skills + 1)[:-1].numpy())
+        ax.scatter(end[:, 0], end[:, 1], s=8, c=colors[skills.numpy()], alpha=0.6)
+        centroids = torch.stack([end[skills == k].mean(0) for k in range(num_skills)])
+        ax.scatter(centroids[:, 0], centroids[:, 1], s=40, c=colors, edgecolors="k", label="skill centroids")
+        ax.scatter(eval_tasks[:, 0], eval_tasks[:, 1], marker="x", c="r", s=50, label="eval goals")
+        ax.set_xlabel("x")
+        ax.set_ylabel("y")
+        ax.set_aspect("equal", adjustable="datalim")
+    else:
+        values = [end[:, 0].numpy(), eval_tasks[:, 0].numpy()]
+        if baseline is not None:
+            values.append(baseline.get("end_point")[:, 0].numpy())
+        low = min(float(v.min()) for v in values)
+        high = max(float(v.max()) for v in values)
+        bins = torch.linspace(low, high + 1e-6, 31).numpy()
+        ax.hist(values[0], bins=bins, color="tab:blue", alpha=0.6, label="skills (mean velocity)")
+        ax.hist(values[1], bins=bins, color="tab:green", alpha=0.6, label="eval goal velocities")
+        if baseline is not None:
+            ax.hist(values[2], bins=bins, color="0.6", alpha=0.5, label="random policy")
+        ax.set_xlabel("forward velocity")
+        ax.set_ylabel("count")
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title(title)
+    fig.tight_layout()
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return str(path)
+
+
