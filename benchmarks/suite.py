@@ -77,6 +77,8 @@ class Job:
 class InlineLauncher:
     """Runs each job in this process when submitted (``launcher.workers=0``: debugging, tests)."""
 
+    slots = 1
+
     def submit(self, fn: Callable, *args, **kwargs) -> cf.Future:
         future: cf.Future = cf.Future()
         try:
@@ -93,6 +95,7 @@ class LocalLauncher:
     """A process pool (spawn) of ``workers`` processes; ``submit`` returns a ``concurrent.futures.Future``."""
 
     def __init__(self, workers: int):
+        self.slots = workers
         self.pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
 
     def submit(self, fn: Callable, *args, **kwargs) -> cf.Future:
@@ -111,6 +114,7 @@ class RayLauncher:
         if not ray.is_initialized():
             ray.init(address=None if address == "local" else address, include_dashboard=False)
         self.ray, self.cpus = ray, cpus_per_job
+        self.slots = max(1, int(ray.cluster_resources().get("CPU", 1) // cpus_per_job))
 
     def submit(self, fn: Callable, *args, **kwargs) -> cf.Future:
         return self.ray.remote(num_cpus=self.cpus)(fn).remote(*args, **kwargs).future()
@@ -127,10 +131,13 @@ def make_launcher(launcher_cfg: Mapping):
     return LocalLauncher(workers) if workers > 0 else InlineLauncher()
 
 
-def run_jobs(jobs: Sequence[Job], launcher, *, log: Callable[[str], None] = print) -> tuple[set[str], dict[str, str]]:
+def run_jobs(jobs: Sequence[Job], launcher, *, log: Callable[[str], None] = print,
+             timings: dict[str, float] | None = None) -> tuple[set[str], dict[str, str]]:
     """Run ``jobs`` respecting dependencies; returns (succeeded keys, {failed or blocked key: reason}).
 
-    Jobs whose ``done()`` is true are not run. A failure does not stop independent jobs; its dependants are blocked.
+    Jobs whose ``done()`` is true are not run. At most ``launcher.slots`` jobs run at once, so the wall time of each
+    job (written into ``timings``) excludes queueing. A failure does not stop independent jobs; its dependants are
+    blocked.
     """
     keys = {job.key for job in jobs}
     if len(keys) != len(jobs):
@@ -139,6 +146,8 @@ def run_jobs(jobs: Sequence[Job], launcher, *, log: Callable[[str], None] = prin
     pending = {job.key: job for job in jobs if job.key not in succeeded}
     failed: dict[str, str] = {}
     running: dict[cf.Future, Job] = {}
+    started: dict[str, float] = {}
+    timings = {} if timings is None else timings
     for key in sorted(succeeded):
         log(f"[skip] {key}: already done")
     while pending or running:
@@ -148,8 +157,9 @@ def run_jobs(jobs: Sequence[Job], launcher, *, log: Callable[[str], None] = prin
             if missing or blocked:
                 failed[key] = f"blocked by {missing or blocked}"
                 del pending[key]
-            elif all(d in succeeded for d in job.deps):
+            elif all(d in succeeded for d in job.deps) and len(running) < launcher.slots:
                 log(f"[start] {key}")
+                started[key] = time.perf_counter()
                 running[launcher.submit(job.fn, *job.args, **job.kwargs)] = job
                 del pending[key]
         if not running:
@@ -157,6 +167,7 @@ def run_jobs(jobs: Sequence[Job], launcher, *, log: Callable[[str], None] = prin
         finished, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
         for future in finished:
             job = running.pop(future)
+            timings[job.key] = time.perf_counter() - started[job.key]
             try:
                 future.result()
                 job.on_success()
@@ -165,7 +176,7 @@ def run_jobs(jobs: Sequence[Job], launcher, *, log: Callable[[str], None] = prin
                 log(f"[fail] {job.key}: {failed[job.key]}")
             else:
                 succeeded.add(job.key)
-                log(f"[done] {job.key}")
+                log(f"[done] {job.key} ({timings[job.key]:.0f} s)")
     return succeeded, failed
 
 
@@ -337,7 +348,8 @@ def report(cfg: DictConfig, group: str, timings: Mapping[str, float]) -> str:
             info = json.loads(p.with_suffix(".json").read_text())
             lrs.setdefault((info["env"], info["method"]), set()).add(round(info["lr"], 6))
     lr_lines = [f"- {env} / {method}: lr {sorted(v)}" for (env, method), v in sorted(lrs.items())]
-    time_lines = [f"- {k}: {v:.0f} s" for k, v in timings.items()]
+    time_lines = [f"- {k}: {v:.0f} s" for k, v in timings.items()] + [
+        "", "(Jobs of an earlier, interrupted invocation are not counted; every invocation is in timings.json.)"]
     markdown = (f"# Benchmark suite `{cfg.profile_name}`\n\nMeta-test return (IQM over tasks x seeds, 95% bootstrap "
                 f"CI); AUC = trapezoidal area under the return curve over k = 0..K.\n\n{table}\n"
                 f"## Meta-test learning rates\n\n" + "\n".join(lr_lines) + "\n\n## Wall time\n\n"
@@ -408,22 +420,28 @@ def run_suite(cfg: DictConfig, *, log: Callable[[str], None] = print) -> str:
     """Plan, run (resuming), ablate and report; raises if any job failed (after reporting what finished)."""
     group = suite_group(cfg)
     start = time.perf_counter()
+    job_times: dict[str, float] = {}
     launcher = make_launcher(cfg.launcher)
     try:
-        _, failed = run_jobs(plan(cfg, group), launcher, log=log)
-        main_done = time.perf_counter()
-        ablation_failed = {}
+        _, failed = run_jobs(plan(cfg, group), launcher, log=log, timings=job_times)
         if cfg.ablation.enabled:
-            _, ablation_failed = run_jobs(plan_ablation(cfg), launcher, log=log)
+            failed.update(run_jobs(plan_ablation(cfg), launcher, log=log, timings=job_times)[1])
     finally:
         launcher.shutdown()
-    end = time.perf_counter()
-    timings = {"pre-training + meta-test (this invocation)": main_done - start,
-               "ablation (this invocation)": end - main_done}
+    timings = {"suite wall time (this invocation)": time.perf_counter() - start}
+    for key, seconds in job_times.items():
+        if key.startswith("pretrain/"):
+            timings[key] = seconds
+    for prefix in ("cell/", "ablation/"):
+        cells = [v for k, v in job_times.items() if k.startswith(prefix)]
+        if cells:
+            timings[f"{prefix}* ({len(cells)} jobs, mean)"] = sum(cells) / len(cells)
+    timings_file = Path(cfg.output_dir) / "timings.json"
+    previous = json.loads(timings_file.read_text()) if timings_file.exists() else []
+    timings_file.write_text(json.dumps(previous + [{"jobs": job_times, "wall": timings}], indent=1))
     markdown = report(cfg, group, timings)
     log(markdown)
     log(f"reports in {Path(cfg.output_dir).resolve()} (wandb group {group})")
-    failed.update(ablation_failed)
     if failed:
         raise RuntimeError("some jobs failed (logs in " f"{Path(cfg.output_dir) / 'logs'}):\n"
                            + "\n".join(f"  {k}: {v}" for k, v in failed.items()))
