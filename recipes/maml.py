@@ -1,0 +1,151 @@
+"""MAML meta-training on proposed tasks: UML-DIAYN, UML-random, or the oracle task family.
+
+    python recipes/maml.py proposal=oracle                                   # hand-designed goals (upper bound)
+    python recipes/maml.py proposal=random                                   # frozen random discriminator
+    python recipes/maml.py proposal=diayn diayn_checkpoint=outputs/diayn/point_nav/seed0
+    python recipes/maml.py proposal=oracle resume=true                       # continue from the latest checkpoint
+
+One meta-iteration: ``proposal.resample`` picks T tasks -> :func:`umrl.rollout.collect` N pre-update trajectories
+per task with θ -> :func:`~umrl.objectives.policy_gradient.compute_advantages` -> ``MAMLLoss.adapt`` (one PG step
+per task) -> collect N post-update trajectories per task with every task's adapted parameters (one vmapped policy
+call per env step) -> :class:`~umrl.optim.trpo.TRPOStep` on the query surrogate, with KL Hessian-vector products
+taken through the inner step (optionally on ``trpo.hvp_fraction`` of the trajectories).
+
+Logged per iteration: ``train/`` return_pre, return_post (mean undiscounted return of the pre/post-update
+trajectories), reward_mean/std/min/max (task rewards of the pre-update batch), kl, surrogate_before,
+improvement, backtracks, accepted, grad_norm, step_norm; ``time/`` collect_s, learn_s, env_steps_per_s,
+env_steps. Checkpoints: ``<output_dir>/checkpoints/step_<iteration>.pt`` (format in :mod:`umrl.maml_checkpoint`).
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import hydra
+import torch
+import tqdm
+from omegaconf import DictConfig
+
+from umrl.maml_checkpoint import FORMAT
+from umrl.modules.policy import make_gaussian_policy
+from umrl.objectives.maml import MAMLLoss
+from umrl.objectives.policy_gradient import compute_advantages, episode_returns
+from umrl.optim.trpo import TRPOStep
+from umrl.proposals import make_proposal
+from umrl.rollout import collect
+from umrl.runtime import Checkpointer, check_finite, log_metrics, make_logger, seed_everything, to_container
+
+
+def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPOStep,
+                   generator: torch.Generator) -> dict[str, float]:
+    """Collect support and query batches for a fresh meta-batch and take one TRPO meta-step; return metrics."""
+    num_tasks, horizon = proposal.num_tasks, cfg.env.horizon
+    adv = dict(gamma=cfg.advantage.gamma, lmbda=cfg.advantage.lmbda, normalize=cfg.advantage.normalize)
+    start = time.perf_counter()
+    proposal.resample(generator)
+    support = compute_advantages(collect(proposal.env, policy, num_tasks=num_tasks, horizon=horizon), **adv)
+    check_finite({"reward": support["next", "reward"]}, "the pre-update rollouts")
+    with torch.no_grad():
+        adapted = loss.adapt(support)
+    check_finite(dict(adapted.items(True, True)), "the adapted parameters (inner step)")
+    query = collect(proposal.env, policy, num_tasks=num_tasks, horizon=horizon, params=adapted)
+    query = compute_advantages(query, **adv)
+    collected = time.perf_counter()
+
+    fraction = cfg.trpo.hvp_fraction
+    hvp_closure = None if fraction >= 1 else (lambda: loss.hvp_kl(support, query, fraction=fraction, generator=generator))
+    info = trpo(lambda: loss.objective_and_kl(support, query), hvp_closure)
+    learned = time.perf_counter()
+
+    reward = support["next", "reward"][support["mask"]]
+    steps = 2 * support["mask"].numel()
+    collect_s, learn_s = collected - start, learned - collected
+    metrics = {f"train/{k}": v for k, v in info.items()}
+    metrics.update({
+        "train/return_pre": episode_returns(support).mean().item(),
+        "train/return_post": episode_returns(query).mean().item(),
+        "train/reward_mean": reward.mean().item(),
+        "train/reward_std": reward.std().item(),
+        "train/reward_min": reward.min().item(),
+        "train/reward_max": reward.max().item(),
+        "time/collect_s": collect_s,
+        "time/learn_s": learn_s,
+        "time/env_steps_per_s": steps / collect_s,
+        "time/env_steps": float(steps),
+    })
+    return metrics
+
+
+def train(cfg: DictConfig) -> dict:
+    """Meta-train as configured; return the last iteration's metrics and the final checkpoint path."""
+    torch.set_num_threads(cfg.num_threads)
+    generator = seed_everything(cfg.seed)
+    out_dir = Path(cfg.output_dir)
+    checkpointer = Checkpointer(out_dir / "checkpoints", keep_all=cfg.checkpoint.keep_all)
+    state = checkpointer.load() if cfg.resume else None  # FileNotFoundError says what is missing
+
+    proposal = make_proposal(
+        cfg.proposal, cfg.env.name, num_tasks=cfg.meta_batch_size, trajectories_per_task=cfg.trajectories_per_task,
+        seed=cfg.seed, horizon=cfg.env.horizon, num_skills=cfg.num_skills,
+        diayn_checkpoint=cfg.diayn_checkpoint if cfg.proposal == "diayn" else None,
+    )
+    env = proposal.env
+    obs_dim, act_dim = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
+    policy = make_gaussian_policy(obs_dim, act_dim, hidden=list(cfg.policy.hidden), init_std=cfg.policy.init_std)
+    loss = MAMLLoss(policy, inner_lr=cfg.maml.inner_lr, num_inner_steps=cfg.maml.num_inner_steps,
+                    first_order=cfg.maml.first_order, task_loop=cfg.maml.task_loop)
+    trpo = TRPOStep(loss.params, max_kl=cfg.trpo.max_kl, damping=cfg.trpo.damping, cg_iters=cfg.trpo.cg_iters,
+                    backtrack_ratio=cfg.trpo.backtrack_ratio, max_backtracks=cfg.trpo.max_backtracks)
+    meta = {
+        "env": cfg.env.name, "proposal": cfg.proposal, "obs_dim": obs_dim, "act_dim": act_dim,
+        "hidden": list(cfg.policy.hidden), "init_std": cfg.policy.init_std, "inner_lr": cfg.maml.inner_lr,
+        "num_inner_steps": cfg.maml.num_inner_steps, "first_order": cfg.maml.first_order,
+        "num_tasks": proposal.num_tasks, "trajectories_per_task": proposal.trajectories_per_task,
+        "horizon": cfg.env.horizon, "num_skills": proposal.num_skills,
+    }
+    iteration, env_steps = 0, 0
+    if state is not None:
+        if state.get("format") != FORMAT:
+            raise ValueError(f"{checkpointer.latest()} is not a MAML checkpoint (format {state.get('format')!r}).")
+        mismatched = {k: (state["meta"].get(k), v) for k, v in meta.items() if state["meta"].get(k) != v}
+        if mismatched:
+            raise ValueError(f"resume=true with a config that differs from the checkpoint's (saved, now): {mismatched}.")
+        policy.load_state_dict(state["policy"])
+        iteration, env_steps = state["iteration"], state["env_steps"]
+        torch.set_rng_state(state["rng"])
+        generator.set_state(state["task_rng"])
+
+    def save():
+        return checkpointer.save({
+            "format": FORMAT, "meta": meta, "policy": policy.state_dict(), "iteration": iteration,
+            "env_steps": env_steps, "rng": torch.get_rng_state(), "task_rng": generator.get_state(),
+            "config": to_container(cfg),
+        }, iteration, cfg)
+
+    logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, config=cfg, log_dir=out_dir)
+    metrics: dict[str, float] = {}
+    progress = tqdm.tqdm(total=cfg.iterations, initial=iteration, disable=not cfg.progress, desc="meta-iterations")
+    while iteration < cfg.iterations:
+        metrics = meta_iteration(cfg, proposal, policy, loss, trpo, generator)
+        iteration += 1
+        env_steps += int(metrics["time/env_steps"])
+        log_metrics(logger, metrics, iteration)
+        progress.update(1)
+        progress.set_postfix(pre=f"{metrics['train/return_pre']:.1f}", post=f"{metrics['train/return_post']:.1f}",
+                             kl=f"{metrics['train/kl']:.4f}", learn=f"{metrics['time/learn_s']:.1f}s")
+        if iteration % cfg.checkpoint.every == 0:
+            save()
+    progress.close()
+    path = save()
+    env.close()
+    return {**metrics, "iteration": iteration, "checkpoint": str(path)}
+
+
+@hydra.main(version_base="1.3", config_path="config", config_name="maml")
+def main(cfg: DictConfig) -> None:
+    result = train(cfg)
+    print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in result.items()})
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,48 @@
+"""Reading the checkpoints written by ``recipes/maml.py`` (format ``"umrl.maml.v1"``).
+
+A checkpoint is a ``torch.save``'d dict:
+
+- ``"format"``: ``"umrl.maml.v1"``;
+- ``"meta"``: ``env``, ``proposal`` (diayn | random | oracle), ``obs_dim``, ``act_dim``, ``hidden``, ``init_std``
+  (arguments of :func:`umrl.modules.policy.make_gaussian_policy`), ``inner_lr``, ``num_inner_steps``,
+  ``first_order``, ``num_tasks``, ``trajectories_per_task``, ``horizon``, ``num_skills`` (None for oracle);
+- ``"policy"``: state dict of the meta-trained initialisation θ;
+- ``"iteration"`` (meta-iterations done), ``"env_steps"``; ``"rng"`` (torch RNG state) and ``"task_rng"`` (state of
+  the generator that draws meta-batches), for ``resume=true``;
+- ``"config"``: the resolved recipe config (also written beside it as ``config.yaml``).
+
+Files are ``<output_dir>/checkpoints/step_<iteration>.pt``, all kept by default (meta-training ablation); the latest
+is the final initialisation.
+"""
+from __future__ import annotations
+
+import os
+
+import torch
+from torchrl.modules import ProbabilisticActor
+
+from umrl.modules.policy import make_gaussian_policy
+from umrl.runtime import resolve_checkpoint
+
+FORMAT = "umrl.maml.v1"
+
+__all__ = ["FORMAT", "load_maml_checkpoint", "load_maml_policy"]
+
+
+def load_maml_checkpoint(path: str | os.PathLike) -> dict:
+    """Load a MAML checkpoint: a ``step_*.pt`` file, a ``checkpoints/`` folder or a run's output_dir (latest)."""
+    file = resolve_checkpoint(path)
+    state = torch.load(file, map_location="cpu", weights_only=False)
+    if not isinstance(state, dict) or state.get("format") != FORMAT:
+        found = state.get("format") if isinstance(state, dict) else type(state).__name__
+        raise ValueError(f"{file} is not a MAML checkpoint (format {found!r}, expected {FORMAT!r}).")
+    return state
+
+
+def load_maml_policy(path: str | os.PathLike) -> tuple[ProbabilisticActor, float]:
+    """``(policy, inner_lr)``: the meta-trained Gaussian policy and the SGD step size it was meta-trained for."""
+    state = load_maml_checkpoint(path)
+    meta = state["meta"]
+    policy = make_gaussian_policy(meta["obs_dim"], meta["act_dim"], hidden=meta["hidden"], init_std=meta["init_std"])
+    policy.load_state_dict(state["policy"])
+    return policy, float(meta["inner_lr"])

@@ -1,0 +1,151 @@
+"""Task proposals for meta-training: where MAML's tasks come from.
+
+A proposal owns a batched env of ``T × N`` copies (task-major: copy ``t * N + n`` runs task ``t``) whose
+``("next", "reward")`` is the task reward, and chooses the ``T`` tasks of each meta-iteration (:meth:`resample`):
+
+* ``oracle`` — the hand-designed task family (:func:`umrl.envs.tasks.get_task_family`, rewards by
+  :class:`~umrl.transforms.task_reward.TaskReward`); fresh tasks every meta-iteration.
+* ``diayn`` — UML-DIAYN: the task is a DIAYN skill z with reward ``log D(z|s') − log p(z)`` from a trained
+  discriminator (``umrl.diayn_checkpoint.load_discriminator``); the meta-batch is every skill (or a random subset
+  of ``num_tasks`` skills each meta-iteration if fewer tasks are asked for).
+* ``random`` — UML-random: the same reward from a seeded, randomly initialised, frozen discriminator.
+
+Skills are pinned per env copy with :meth:`~umrl.transforms.skill.SkillTransform.pin` (the policy never sees them:
+it must infer its task from rewards), so ``"skill"`` ``[B, K]`` appears in rollouts for inspection only.
+
+Example:
+    >>> proposal = make_proposal("oracle", "point_nav", num_tasks=20, trajectories_per_task=40, seed=0)
+    >>> tasks = proposal.resample(torch.Generator().manual_seed(0))   # [20, 2] goals
+    >>> batch = collect(proposal.env, policy, num_tasks=20, horizon=100)
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import torch
+from torchrl.envs import TransformedEnv
+
+from umrl.envs import get_task_family, make_env, make_task_env
+from umrl.modules.discriminator import make_discriminator
+from umrl.transforms.discriminator_reward import DiscriminatorReward
+from umrl.transforms.skill import SkillTransform
+
+PROPOSALS = ("diayn", "random", "oracle")
+#: PROTOCOL.md: DIAYN skills (= MAML meta-batch) per env.
+DEFAULT_NUM_SKILLS = {"point_nav": 50, "half_cheetah": 20, "ant": 20}
+
+__all__ = ["PROPOSALS", "DEFAULT_NUM_SKILLS", "TaskProposal", "make_proposal"]
+
+
+@dataclass
+class TaskProposal:
+    """A meta-training task source.
+
+    Attributes:
+        name: ``"diayn"``, ``"random"`` or ``"oracle"``.
+        env: batched env with ``batch_size == [num_tasks * trajectories_per_task]``.
+        num_tasks: ``T``, tasks per meta-iteration.
+        trajectories_per_task: ``N``.
+        num_skills: ``K`` for skill proposals, ``None`` for oracle.
+    """
+
+    name: str
+    env: TransformedEnv
+    num_tasks: int
+    trajectories_per_task: int
+    num_skills: int | None = None
+
+    def resample(self, generator: torch.Generator | None = None) -> torch.Tensor:
+        """Choose the next meta-batch and assign it to the env copies (effective from the next reset).
+
+        Returns the tasks: goal/velocity parameters ``[T, task_dim]`` (oracle) or skill indices ``[T]`` (int64).
+        """
+        n = self.trajectories_per_task
+        if self.num_skills is None:
+            tasks = _family_of(self.env).sample(self.num_tasks, generator)
+            self.env.transform[-1].set_tasks(tasks.repeat_interleave(n, 0))
+            return tasks
+        if self.num_tasks == self.num_skills:
+            skills = torch.arange(self.num_skills)
+        else:
+            skills = torch.randperm(self.num_skills, generator=generator)[: self.num_tasks]
+        self.env.transform[-2].pin(skills.repeat_interleave(n, 0))
+        return skills
+
+
+def _family_of(env: TransformedEnv):
+    """The :class:`~umrl.envs.tasks.TaskFamily` of an env built by ``make_task_env`` (its last transform)."""
+    return env.transform[-1].family
+
+
+def _skill_env(env_name: str, discriminator, num_skills: int, batch: int, seed: int, horizon: int) -> TransformedEnv:
+    env = make_env(env_name, batch, seed=seed, horizon=horizon)
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    in_features = next(p for p in discriminator.parameters()).shape[-1]
+    if in_features != obs_dim:
+        raise ValueError(
+            f"the discriminator reads {in_features}-D observations but {env_name} has {obs_dim}-D ones: "
+            "was the DIAYN checkpoint trained on another env?"
+        )
+    env.append_transform(SkillTransform(num_skills))
+    env.append_transform(DiscriminatorReward(discriminator, num_skills))
+    return env
+
+
+def make_proposal(
+    name: str,
+    env_name: str,
+    *,
+    num_tasks: int | None = None,
+    trajectories_per_task: int = 40,
+    seed: int = 0,
+    horizon: int = 100,
+    num_skills: int | None = None,
+    diayn_checkpoint: str | os.PathLike | None = None,
+    discriminator_hidden: tuple[int, ...] = (300, 300),
+) -> TaskProposal:
+    """Build a :class:`TaskProposal`.
+
+    Args:
+        name: one of :data:`PROPOSALS`.
+        env_name: ``point_nav``, ``half_cheetah`` or ``ant``.
+
+    Keyword Args:
+        num_tasks: meta-batch ``T``; ``None``: the number of skills (diayn/random) or
+            :data:`DEFAULT_NUM_SKILLS` of the env (oracle), i.e. PROTOCOL.md's 50/20/20.
+        trajectories_per_task: ``N`` env copies per task.
+        seed: seeds the env and the random discriminator's weights.
+        horizon: episode length.
+        num_skills: ``K`` of the random discriminator (default :data:`DEFAULT_NUM_SKILLS`); diayn reads it from the
+            checkpoint.
+        diayn_checkpoint: DIAYN run directory or ``step_*.pt`` file (proposal ``diayn`` only).
+        discriminator_hidden: widths of the random discriminator.
+    """
+    if name not in PROPOSALS:
+        raise ValueError(f"unknown proposal {name!r}; valid choices: {list(PROPOSALS)}.")
+    if trajectories_per_task < 1 or (num_tasks is not None and num_tasks < 1):
+        raise ValueError(f"need num_tasks >= 1 and trajectories_per_task >= 1, got {num_tasks} and {trajectories_per_task}.")
+    n = trajectories_per_task
+    if name == "oracle":
+        family = get_task_family(env_name)
+        num_tasks = num_tasks or DEFAULT_NUM_SKILLS[env_name]
+        tasks = family.sample(num_tasks, torch.Generator().manual_seed(seed))
+        env = make_task_env(env_name, tasks.repeat_interleave(n, 0), seed=seed, horizon=horizon)
+        return TaskProposal(name, env, num_tasks, n)
+    if name == "diayn":
+        if diayn_checkpoint is None:
+            raise ValueError("proposal=diayn needs diayn_checkpoint=<DIAYN run dir or step_*.pt file>.")
+        from umrl.diayn_checkpoint import load_discriminator
+
+        discriminator, num_skills, _ = load_discriminator(diayn_checkpoint)
+    else:
+        num_skills = num_skills or DEFAULT_NUM_SKILLS[env_name]
+        obs_dim = make_env(env_name, 1).observation_spec["observation"].shape[-1]
+        discriminator = make_discriminator(obs_dim, num_skills, hidden=discriminator_hidden, seed=seed)
+        discriminator = discriminator.eval().requires_grad_(False)
+    num_tasks = num_tasks or num_skills
+    if num_tasks > num_skills:
+        raise ValueError(f"num_tasks={num_tasks} exceeds the {num_skills} skills: one skill per task.")
+    env = _skill_env(env_name, discriminator, num_skills, num_tasks * n, seed, horizon)
+    return TaskProposal(name, env, num_tasks, n, num_skills=num_skills)
