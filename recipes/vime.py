@@ -15,7 +15,8 @@ advantages (:func:`umrl.objectives.policy_gradient.compute_advantages`).
 Logged (namespaced): ``bonus/`` info gain and bonus statistics; ``dynamics/`` training loss, log-likelihood, KL to
 the prior, held-out log-likelihood and ELBO per transition; ``trpo/`` improvement, KL, acceptance, backtracks;
 ``coverage/`` of the batch's visited states (x-y cells and their area for point_nav and ant, velocity ranges for
-half_cheetah) and the untrained policy's under ``coverage/initial_*``; ``time/`` env steps/s and seconds per phase.
+half_cheetah), the untrained policy's under ``coverage/initial_*`` and everything visited so far under
+``coverage/cumulative_*``; ``time/`` env steps/s and seconds per phase.
 
 Checkpoints: ``<output_dir>/checkpoints/step_<iteration>.pt``, format ``umrl.vime.v1`` (documented in
 :mod:`umrl.objectives.vime`); ``umrl.objectives.vime.load_vime_policy(path)`` returns the policy to fine-tune.
@@ -55,9 +56,7 @@ def state_coverage(batch: TensorDictBase, env_name: str, cell_size: float | None
     x-y envs: ``cells`` (distinct grid cells of side ``cell_size``), ``area`` (cells x cell area), ``max_distance``
     from the origin. half_cheetah: ``velocity_range`` (max - min forward velocity) and ``velocity_range_p5_p95``.
     """
-    if env_name not in COVERAGE_KEYS:
-        raise ValueError(f"no coverage measure for env {env_name!r}; valid choices: {sorted(COVERAGE_KEYS)}.")
-    values = batch["next", COVERAGE_KEYS[env_name]][batch["mask"]]
+    values = visited_states(batch, env_name)
     if env_name == "half_cheetah":
         v = values.reshape(-1)
         low, high = torch.quantile(v, torch.tensor([0.05, 0.95]))
@@ -65,6 +64,31 @@ def state_coverage(batch: TensorDictBase, env_name: str, cell_size: float | None
     cell = cell_size if cell_size is not None else DEFAULT_CELL[env_name]
     cells = torch.unique(torch.floor(values / cell).long(), dim=0).shape[0]
     return {"cells": float(cells), "area": cells * cell**2, "max_distance": float(values.norm(dim=-1).max())}
+
+
+def visited_states(batch: TensorDictBase, env_name: str) -> torch.Tensor:
+    """``[M, k]`` x-y positions (point_nav, ant) or forward velocities (half_cheetah) at the batch's valid steps."""
+    if env_name not in COVERAGE_KEYS:
+        raise ValueError(f"no coverage measure for env {env_name!r}; valid choices: {sorted(COVERAGE_KEYS)}.")
+    return batch["next", COVERAGE_KEYS[env_name]][batch["mask"]]
+
+
+def cumulative_coverage(
+    seen: torch.Tensor | None, batch: TensorDictBase, env_name: str, cell_size: float | None = None
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Fold ``batch`` into everything visited so far: ``seen`` is the set of visited cells ``[M, 2]`` (x-y envs) or
+    the ``[min, max]`` velocity (half_cheetah). Returns the new ``seen`` and ``cumulative_cells`` / ``_area`` or
+    ``cumulative_velocity_range``."""
+    values = visited_states(batch, env_name)
+    if env_name == "half_cheetah":
+        v = values.reshape(-1)
+        seen = torch.stack([v.min(), v.max()]) if seen is None else torch.stack(
+            [torch.minimum(seen[0], v.min()), torch.maximum(seen[1], v.max())])
+        return seen, {"cumulative_velocity_range": float(seen[1] - seen[0])}
+    cell = cell_size if cell_size is not None else DEFAULT_CELL[env_name]
+    cells = torch.floor(values / cell).long()
+    seen = torch.unique(cells if seen is None else torch.cat([seen, cells]), dim=0)
+    return seen, {"cumulative_cells": float(seen.shape[0]), "cumulative_area": seen.shape[0] * cell**2}
 
 
 def check_config(cfg: DictConfig) -> None:
@@ -175,14 +199,14 @@ def train(cfg: DictConfig) -> dict:
     trpo = TRPOStep(params, max_kl=t.max_kl, damping=t.damping, cg_iters=t.cg_iters,
                     backtrack_ratio=t.backtrack_ratio, max_backtracks=t.max_backtracks)
     counters = {"iteration": 0, "frames": 0}
-    replay = holdout = first_batch = None
+    replay = holdout = first_batch = seen = None
     initial_coverage: dict[str, float] = {}
     if state is not None:
         policy.load_state_dict(state["policy"])
         dynamics.load_state_dict(state["dynamics"])
         optimizer.load_state_dict(state["dynamics_optimizer"])
         bonus.median_history.copy_(state["median_history"])
-        replay, holdout = state["replay"], state["holdout"]
+        replay, holdout, seen = state["replay"], state["holdout"], state["visited"]
         counters.update(state["counters"])
         initial_coverage = state["initial_coverage"]
         torch.set_rng_state(state["rng"])
@@ -196,7 +220,8 @@ def train(cfg: DictConfig) -> dict:
             "format": FORMAT, "meta": meta, "policy": policy.state_dict(), "dynamics": dynamics.state_dict(),
             "dynamics_optimizer": optimizer.state_dict(), "median_history": bonus.median_history.clone(),
             "replay": replay if keep else None, "holdout": holdout if keep else None,
-            "counters": dict(counters), "initial_coverage": initial_coverage, "rng": torch.get_rng_state(),
+            "counters": dict(counters), "initial_coverage": initial_coverage, "visited": seen,
+            "rng": torch.get_rng_state(),
             "config": to_container(cfg),
         }, counters["iteration"], cfg)
 
@@ -212,6 +237,7 @@ def train(cfg: DictConfig) -> dict:
         batch = collect(env, policy, num_tasks=1, horizon=cfg.env.horizon)[0]  # [N, H]
         collect_s = time.perf_counter() - tic
         coverage = state_coverage(batch, cfg.env.name, cfg.coverage.cell_size)
+        seen, cumulative = cumulative_coverage(seen, batch, cfg.env.name, cfg.coverage.cell_size)
         if counters["iteration"] == 0:
             initial_coverage, first_batch = coverage, batch.clone()
 
@@ -250,7 +276,7 @@ def train(cfg: DictConfig) -> dict:
             **{f"dynamics/{k}": v for k, v in dyn_metrics.items()},
             **{f"trpo/{k}": v for k, v in trpo_info.items()},
             "policy/action_std": float(batch["scale"].mean()),
-            **{f"coverage/{k}": v for k, v in coverage.items()},
+            **{f"coverage/{k}": v for k, v in {**coverage, **cumulative}.items()},
             **{f"coverage/initial_{k}": v for k, v in initial_coverage.items()},
             "time/env_steps_per_s": batch.numel() / max(collect_s, 1e-9), "time/collect_s": collect_s,
             "time/bonus_s": bonus_s, "time/dynamics_s": dynamics_s, "time/policy_s": policy_s,

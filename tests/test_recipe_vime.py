@@ -45,6 +45,7 @@ def test_run_checkpoint_resume_and_load(tmp_path):
     second = load_vime_checkpoint(tmp_path)
     assert second["counters"] == {"iteration": 3, "frames": 120}
     assert second["initial_coverage"] == first["initial_coverage"]
+    assert resumed["coverage/cumulative_cells"] >= second["initial_coverage"]["cells"]
     assert second["replay"].shape[0] + second["holdout"].shape[0] == 120
     assert resumed["coverage/initial_cells"] == result["coverage/initial_cells"]
     # the bonus normaliser was restored, then moved by one batch
@@ -91,3 +92,10 @@ def test_state_coverage_counts_cells_and_velocity_ranges():
     assert cov["velocity_range_p5_p95"] == pytest.approx(3.6, rel=1e-4)
     with pytest.raises(ValueError, match="valid choices"):
         recipe.state_coverage(batch, "cartpole")
+    seen, cum = recipe.cumulative_coverage(None, batch, "point_nav", cell_size=0.1)
+    assert cum["cumulative_cells"] == 2
+    batch["next", "position"] = xy + 1.0
+    seen, cum = recipe.cumulative_coverage(seen, batch, "point_nav", cell_size=0.1)
+    assert cum["cumulative_cells"] == 4 and seen.shape == (4, 2)
+    seen, cum = recipe.cumulative_coverage(None, vel, "half_cheetah")
+    assert cum["cumulative_velocity_range"] == pytest.approx(4.0)

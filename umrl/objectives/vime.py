@@ -14,7 +14,8 @@ Checkpoint format ``"umrl.vime.v1"``: a ``torch.save``'d dict, files ``<output_d
 - ``"dynamics"``: state dict of :class:`~umrl.modules.bnn.BayesianDynamics` (posterior and running statistics);
 - ``"dynamics_optimizer"``: Adam state; ``"median_history"``: the bonus normaliser's recent medians;
 - ``"replay"`` / ``"holdout"``: the dynamics model's transitions (TensorDicts) or ``None``;
-- ``"counters"``: ``iteration``, ``frames``; ``"initial_coverage"``: coverage of the untrained policy;
+- ``"counters"``: ``iteration``, ``frames``; ``"initial_coverage"``: coverage of the untrained policy; ``"visited"``:
+  the cells (or velocity range) visited so far;
   ``"rng"``: torch RNG state; ``"config"``: the resolved recipe config (also beside it as ``config.yaml``).
 """
 from __future__ import annotations
