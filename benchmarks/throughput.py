@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
+import sys
 import time
 import warnings
 from collections.abc import Callable
@@ -176,13 +177,8 @@ def _physics_limit(name: str, batch: int, steps: int, threads: int):
 def _bare_gym_vector(name: str, batch: int, steps: int):
     def setup():
         spec = MODEL_SPECS[name]
-        envs = gymnasium.make_vec(
-            spec.gym_id,
-            num_envs=batch,
-            vectorization_mode="sync",
-            vector_kwargs={"autoreset_mode": gymnasium.vector.AutoresetMode.DISABLED},
-            **spec.gym_kwargs,
-        )
+        # gymnasium's own autoreset (a terminated Ant copy restarts), as a user of the bare vector env would step it
+        envs = gymnasium.make_vec(spec.gym_id, num_envs=batch, vectorization_mode="sync", **spec.gym_kwargs)
         envs.reset(seed=0)
         actions = (
             np.random.default_rng(0).uniform(-1, 1, (steps, *envs.action_space.shape)).astype(np.float32)
@@ -256,7 +252,8 @@ def run_benchmarks(benches: list[Bench], repeats: int) -> dict[int, list[float]]
         runs[i] = setup()
         runs[i]()  # warm-up, untimed
     rates: dict[int, list[float]] = {i: [] for i in runs}
-    for _ in range(repeats):
+    for r in range(repeats):
+        print(f"repeat {r + 1}/{repeats}", file=sys.stderr, flush=True)
         for i, run in runs.items():
             start = time.perf_counter()
             n = run()
