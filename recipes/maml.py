@@ -40,7 +40,7 @@ def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPO
                    generator: torch.Generator) -> dict[str, float]:
     """Collect support and query batches for a fresh meta-batch and take one TRPO meta-step; return metrics."""
     num_tasks, horizon = proposal.num_tasks, cfg.env.horizon
-    adv = dict(gamma=cfg.advantage.gamma, lmbda=cfg.advantage.lmbda, normalize=cfg.advantage.normalize)
+    adv = {"gamma": cfg.advantage.gamma, "lmbda": cfg.advantage.lmbda, "normalize": cfg.advantage.normalize}
     start = time.perf_counter()
     proposal.resample(generator)
     support = compute_advantages(collect(proposal.env, policy, num_tasks=num_tasks, horizon=horizon), **adv)
@@ -76,14 +76,8 @@ def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPO
     return metrics
 
 
-def train(cfg: DictConfig) -> dict:
-    """Meta-train as configured; return the last iteration's metrics and the final checkpoint path."""
-    torch.set_num_threads(cfg.num_threads)
-    generator = seed_everything(cfg.seed)
-    out_dir = Path(cfg.output_dir)
-    checkpointer = Checkpointer(out_dir / "checkpoints", keep_all=cfg.checkpoint.keep_all)
-    state = checkpointer.load() if cfg.resume else None  # FileNotFoundError says what is missing
-
+def build(cfg: DictConfig):
+    """``(proposal, policy, loss, trpo)`` from the config (shared with ``benchmarks/meta_iteration.py``)."""
     proposal = make_proposal(
         cfg.proposal, cfg.env.name, num_tasks=cfg.meta_batch_size, trajectories_per_task=cfg.trajectories_per_task,
         seed=cfg.seed, horizon=cfg.env.horizon, num_skills=cfg.num_skills,
@@ -96,6 +90,20 @@ def train(cfg: DictConfig) -> dict:
                     first_order=cfg.maml.first_order, task_loop=cfg.maml.task_loop)
     trpo = TRPOStep(loss.params, max_kl=cfg.trpo.max_kl, damping=cfg.trpo.damping, cg_iters=cfg.trpo.cg_iters,
                     backtrack_ratio=cfg.trpo.backtrack_ratio, max_backtracks=cfg.trpo.max_backtracks)
+    return proposal, policy, loss, trpo
+
+
+def train(cfg: DictConfig) -> dict:
+    """Meta-train as configured; return the last iteration's metrics and the final checkpoint path."""
+    torch.set_num_threads(cfg.num_threads)
+    generator = seed_everything(cfg.seed)
+    out_dir = Path(cfg.output_dir)
+    checkpointer = Checkpointer(out_dir / "checkpoints", keep_all=cfg.checkpoint.keep_all)
+    state = checkpointer.load() if cfg.resume else None  # FileNotFoundError says what is missing
+
+    proposal, policy, loss, trpo = build(cfg)
+    env = proposal.env
+    obs_dim, act_dim = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
     meta = {
         "env": cfg.env.name, "proposal": cfg.proposal, "obs_dim": obs_dim, "act_dim": act_dim,
         "hidden": list(cfg.policy.hidden), "init_std": cfg.policy.init_std, "inner_lr": cfg.maml.inner_lr,

@@ -13,7 +13,7 @@ from umrl.runtime import Checkpointer
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "recipes"))
-from maml import train  # noqa: E402
+from maml import train
 
 TINY = ["env.horizon=10", "meta_batch_size=2", "trajectories_per_task=3", "policy.hidden=[16]",
         "logger.backend=none", "progress=false", "checkpoint.every=1", "trpo.cg_iters=3", "num_skills=4"]

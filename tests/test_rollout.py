@@ -20,7 +20,7 @@ def _setup():
 def _last_layer(params):
     """Keys of the output layer's weight and bias (the MLP's last Linear)."""
     keys = [k for k in params.keys(True, True) if k[-1] in ("weight", "bias") and params.get(k).shape[-1] == 8]
-    weight = [k for k in keys if k[-1] == "weight"][0]
+    weight = next(k for k in keys if k[-1] == "weight")
     return weight, weight[:-1] + ("bias",)
 
 

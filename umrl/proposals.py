@@ -35,7 +35,7 @@ PROPOSALS = ("diayn", "random", "oracle")
 #: PROTOCOL.md: DIAYN skills (= MAML meta-batch) per env.
 DEFAULT_NUM_SKILLS = {"point_nav": 50, "half_cheetah": 20, "ant": 20}
 
-__all__ = ["PROPOSALS", "DEFAULT_NUM_SKILLS", "TaskProposal", "make_proposal"]
+__all__ = ["DEFAULT_NUM_SKILLS", "PROPOSALS", "TaskProposal", "make_proposal"]
 
 
 @dataclass

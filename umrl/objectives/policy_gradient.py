@@ -23,12 +23,12 @@ from tensordict import TensorDictBase
 from torchrl.objectives.value.functional import vec_generalized_advantage_estimate
 
 __all__ = [
-    "trajectory_mask",
     "baseline_features",
-    "fit_linear_baseline",
     "compute_advantages",
-    "vpg_loss",
     "episode_returns",
+    "fit_linear_baseline",
+    "trajectory_mask",
+    "vpg_loss",
 ]
 
 
@@ -120,7 +120,7 @@ def compute_advantages(
     if td.batch_dims < 2:
         raise ValueError(f"expected a batch [..., N, H] of trajectories, got batch size {tuple(td.batch_size)}.")
     done = td["next", "done"]
-    if "mask" not in td.keys():
+    if "mask" not in td:
         td.set("mask", trajectory_mask(done))
     mask = td["mask"]
     valid = mask.unsqueeze(-1)
@@ -165,5 +165,5 @@ def vpg_loss(log_prob: torch.Tensor, td: TensorDictBase) -> torch.Tensor:
 
 def episode_returns(td: TensorDictBase) -> torch.Tensor:
     """Undiscounted return of each trajectory's first episode, ``[..., N]``."""
-    mask = td["mask"] if "mask" in td.keys() else trajectory_mask(td["next", "done"])
+    mask = td["mask"] if "mask" in td else trajectory_mask(td["next", "done"])
     return (td["next", "reward"].squeeze(-1) * mask).sum(-1)

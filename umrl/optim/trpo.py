@@ -31,7 +31,7 @@ from collections.abc import Callable
 import torch
 from tensordict import TensorDictBase
 
-__all__ = ["conjugate_gradient", "TRPOStep"]
+__all__ = ["TRPOStep", "conjugate_gradient"]
 
 
 def conjugate_gradient(
