@@ -9,7 +9,9 @@ One meta-iteration: ``proposal.resample`` picks T tasks -> :func:`umrl.rollout.c
 per task with θ -> :func:`~umrl.objectives.policy_gradient.compute_advantages` -> ``MAMLLoss.adapt`` (one PG step
 per task) -> collect N post-update trajectories per task with every task's adapted parameters (one vmapped policy
 call per env step) -> :class:`~umrl.optim.trpo.TRPOStep` on the query surrogate, with KL Hessian-vector products
-taken through the inner step (optionally on ``trpo.hvp_fraction`` of the trajectories).
+taken through the inner step (optionally on ``trpo.hvp_fraction`` of the trajectories): ``trpo.hvp=gauss_newton``
+(default, ``MAMLLoss.gauss_newton_hvp``: exact at the current point, no third-order derivatives) or ``exact``
+(double backward of the KL through the inner step).
 
 Logged per iteration: ``train/`` return_pre, return_post (mean undiscounted return of the pre/post-update
 trajectories), reward_mean/std/min/max (task rewards of the pre-update batch), kl, surrogate_before,
@@ -35,6 +37,8 @@ from umrl.proposals import make_proposal
 from umrl.rollout import collect
 from umrl.runtime import Checkpointer, check_finite, log_metrics, make_logger, seed_everything, to_container
 
+HVP_MODES = ("gauss_newton", "exact")
+
 
 def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPOStep,
                    generator: torch.Generator) -> dict[str, float]:
@@ -53,8 +57,14 @@ def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPO
     collected = time.perf_counter()
 
     fraction = cfg.trpo.hvp_fraction
-    hvp_closure = None if fraction >= 1 else (lambda: loss.hvp_kl(support, query, fraction=fraction, generator=generator))
-    info = trpo(lambda: loss.objective_and_kl(support, query), hvp_closure)
+    if cfg.trpo.hvp == "gauss_newton":
+        info = trpo(lambda: loss.objective_and_kl(support, query),
+                    hvp=lambda: loss.gauss_newton_hvp(support, query, fraction=fraction, generator=generator))
+    elif fraction < 1:
+        info = trpo(lambda: loss.objective_and_kl(support, query),
+                    lambda: loss.hvp_kl(support, query, fraction=fraction, generator=generator))
+    else:  # the closure's own KL graph
+        info = trpo(lambda: loss.objective_and_kl(support, query))
     learned = time.perf_counter()
 
     reward = support["next", "reward"][support["mask"]]
@@ -101,6 +111,8 @@ def train(cfg: DictConfig) -> dict:
     checkpointer = Checkpointer(out_dir / "checkpoints", keep_all=cfg.checkpoint.keep_all)
     state = checkpointer.load() if cfg.resume else None  # FileNotFoundError says what is missing
 
+    if cfg.trpo.hvp not in HVP_MODES:
+        raise ValueError(f"trpo.hvp must be one of {list(HVP_MODES)}, got {cfg.trpo.hvp!r}.")
     proposal, policy, loss, trpo = build(cfg)
     env = proposal.env
     obs_dim, act_dim = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]

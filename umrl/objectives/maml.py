@@ -175,19 +175,76 @@ class MAMLLoss(LossModule):
         policy through the inner step. With ``fraction=1`` it equals the Hessian of the ``kl`` of
         :meth:`objective_and_kl`.
         """
-        if not 0 < fraction <= 1:
-            raise ValueError(f"fraction must be in (0, 1], got {fraction}.")
-        if fraction < 1:
-            n = support.shape[1]
-            keep = max(1, math.ceil(fraction * n))
-            idx = torch.randperm(n, generator=generator)[:keep]
-            support, query = support[:, idx], query[:, idx]
+        support, query = self._subsample(support, query, fraction, generator)
         phi = self.adapt(support)
         with torch.no_grad():
             old = self.functional_policy.dist_params(phi.detach(), query)
         new = self.functional_policy.dist_params(phi, query)
         kl = gaussian_kl(old["loc"], old["scale"], new["loc"], new["scale"])
         return _masked_mean(kl, query[self.tensor_keys.mask])
+
+    def _subsample(self, support, query, fraction, generator):
+        if not 0 < fraction <= 1:
+            raise ValueError(f"fraction must be in (0, 1], got {fraction}.")
+        if fraction == 1:
+            return support, query
+        n = support.shape[1]
+        idx = torch.randperm(n, generator=generator)[: max(1, math.ceil(fraction * n))]
+        return support[:, idx], query[:, idx]
+
+    def gauss_newton_hvp(
+        self,
+        support: TensorDictBase,
+        query: TensorDictBase,
+        *,
+        fraction: float = 1.0,
+        generator: torch.Generator | None = None,
+    ):
+        """``v -> H v`` for the KL Hessian through the inner step, without third-order derivatives.
+
+        With φ_t(θ) = θ − α ∇L_t(θ) and KL = mean_t KL(π_φ_t(θ̄) ‖ π_φ_t(θ)), whose gradient w.r.t. φ vanishes at
+        θ = θ̄, the Hessian is exactly ``Σ_t J_tᵀ F_t J_t`` with ``J_t = I − α ∇²L_t`` and ``F_t`` the KL's Hessian
+        in φ_t. Each product costs two double-backward passes through the inner gradient (support data) and one
+        through the KL's gradient (query data); both graphs are built once here and reused by every call. Equals
+        the Hessian-vector product of :meth:`hvp_kl` (tested), typically ~2× cheaper. Needs ``num_inner_steps=1``.
+
+        Returns a function of a flat vector ordered like ``self.params.values(True, True)``.
+        """
+        if self.num_inner_steps != 1:
+            raise ValueError("gauss_newton_hvp supports num_inner_steps=1; use hvp_kl for other values.")
+        support, query = self._subsample(support, query, fraction, generator)
+        theta = self.params
+        keys = list(theta.keys(True, True))
+        num_tasks = support.shape[0]
+        with torch.enable_grad():
+            theta_t = theta.expand(num_tasks)
+            theta_leaves = [theta_t.get(k) for k in keys]
+            inner = self.inner_loss(theta_t, support).sum()
+            grads = torch.autograd.grad(inner, theta_leaves, create_graph=not self.first_order)
+            phi = theta_t.empty()
+            for key, p, g in zip(keys, theta_leaves, grads):
+                phi.set(key, (p - self.inner_lr * g).detach().requires_grad_(True))
+            phi_leaves = [phi.get(k) for k in keys]
+            old = self.functional_policy.dist_params(phi.detach(), query)
+            new = self.functional_policy.dist_params(phi, query)
+            kl = _masked_mean(gaussian_kl(old["loc"], old["scale"], new["loc"], new["scale"]), query["mask"])
+            kl_grads = torch.autograd.grad(kl, phi_leaves, create_graph=True)
+        shapes = [p.shape[1:] for p in phi_leaves]
+        sizes = [s.numel() for s in shapes]
+
+        def jacobian_t(vectors):  # per-task (I - α ∇²L_t) v_t
+            if self.first_order:
+                return vectors
+            hv = torch.autograd.grad(grads, theta_leaves, grad_outputs=vectors, retain_graph=True)
+            return [v - self.inner_lr * h for v, h in zip(vectors, hv)]
+
+        def hvp(v: torch.Tensor) -> torch.Tensor:
+            parts = [c.view(s).expand(num_tasks, *s) for c, s in zip(v.split(sizes), shapes)]
+            jv = jacobian_t(parts)
+            fjv = torch.autograd.grad(kl_grads, phi_leaves, grad_outputs=jv, retain_graph=True)
+            return torch.cat([x.sum(0).reshape(-1) for x in jacobian_t(list(fjv))])
+
+        return hvp
 
     def forward(self, support: TensorDictBase, query: TensorDictBase) -> TensorDictBase:
         keys = self.tensor_keys

@@ -5,10 +5,11 @@ policy updates. It is agnostic to what the surrogate is: it only needs
 
 * ``closure() -> (surrogate_loss, kl)``: two differentiable scalars evaluated at the *current* values of the
   parameters (the loss to minimise, and the mean KL divergence between the policy that collected the data and the
-  current one). It is called once with gradients enabled to build the step and once per line-search trial (there
-  with ``torch.no_grad`` unless the closure needs gradients itself, see ``line_search_grad``).
+  current one). It is called once with gradients enabled to build the step and once per line-search trial under
+  ``torch.no_grad`` (a closure that differentiates internally, like MAML's inner step, re-enables grad itself).
 * optionally ``hvp_closure() -> kl``: the KL whose Hessian-vector products drive conjugate gradient, e.g. the same
-  KL on a subsample of the batch. Defaults to the ``kl`` returned by ``closure``.
+  KL on a subsample of the batch. Defaults to the ``kl`` returned by ``closure``. Or ``hvp() -> (v -> H v)``: a
+  ready-made Hessian-vector product (MAML's Gauss-Newton form avoids third-order derivatives).
 
 Example:
     >>> policy = torch.nn.Linear(3, 2)
@@ -86,8 +87,6 @@ class TRPOStep:
         cg_iters: conjugate-gradient iterations (default 10).
         backtrack_ratio: step shrink factor per line-search trial (default 0.8).
         max_backtracks: number of line-search trials (default 15).
-        line_search_grad: evaluate the closure with gradients enabled during the line search (needed when the
-            closure itself differentiates, e.g. MAML's inner step). Default ``False`` (``torch.no_grad``).
 
     Calling the step returns a dict of floats: ``surrogate_before``, ``surrogate_after``, ``improvement``
     (before − after, positive is better), ``kl`` (measured at the accepted point, 0 if rejected), ``accepted``
@@ -103,7 +102,6 @@ class TRPOStep:
         cg_iters: int = 10,
         backtrack_ratio: float = 0.8,
         max_backtracks: int = 15,
-        line_search_grad: bool = False,
     ) -> None:
         if max_kl <= 0 or damping < 0 or cg_iters < 1 or not 0 < backtrack_ratio < 1 or max_backtracks < 1:
             raise ValueError(
@@ -119,7 +117,6 @@ class TRPOStep:
         self.cg_iters = cg_iters
         self.backtrack_ratio = backtrack_ratio
         self.max_backtracks = max_backtracks
-        self.line_search_grad = line_search_grad
 
     def _flat(self, tensors) -> torch.Tensor:
         return torch.cat([t.reshape(-1) for t in tensors])
@@ -159,7 +156,14 @@ class TRPOStep:
         self,
         closure: Callable[[], tuple[torch.Tensor, torch.Tensor]],
         hvp_closure: Callable[[], torch.Tensor] | None = None,
+        *,
+        hvp: Callable[[], Callable[[torch.Tensor], torch.Tensor]] | None = None,
     ) -> dict[str, float]:
+        """One step. ``hvp_closure() -> kl`` replaces the closure's KL for the Hessian-vector products; ``hvp() ->
+        (v -> H v)`` replaces them altogether (an undamped product on flat vectors ordered like the params' leaves,
+        e.g. ``MAMLLoss.gauss_newton_hvp``); at most one of the two."""
+        if hvp is not None and hvp_closure is not None:
+            raise ValueError("give either hvp_closure or hvp, not both.")
         with torch.enable_grad():
             loss, kl = closure()
             if loss.dim() != 0 or kl.dim() != 0:
@@ -167,11 +171,17 @@ class TRPOStep:
             loss_before = loss.item()
             if not math.isfinite(loss_before):
                 raise ValueError(f"TRPO surrogate is not finite ({loss_before}); check rewards and log-probs.")
-            grad = self._grad(loss, retain_graph=hvp_closure is None)
-            hvp = self.hvp_builder(kl if hvp_closure is None else hvp_closure())
-            direction = conjugate_gradient(hvp, grad, iters=self.cg_iters)
-            shs = direction.dot(hvp(direction)).item()
-        del hvp, kl, loss
+            grad = self._grad(loss, retain_graph=hvp_closure is None and hvp is None)
+            if hvp is not None:
+                undamped = hvp()
+
+                def damped(v: torch.Tensor) -> torch.Tensor:
+                    return undamped(v) + self.damping * v
+            else:
+                damped = self.hvp_builder(kl if hvp_closure is None else hvp_closure())
+            direction = conjugate_gradient(damped, grad, iters=self.cg_iters)
+            shs = direction.dot(damped(direction)).item()
+        del damped, kl, loss
         info = {
             "surrogate_before": loss_before,
             "grad_norm": grad.norm().item(),
@@ -186,11 +196,10 @@ class TRPOStep:
             return info
         full_step = math.sqrt(2.0 * self.max_kl / (shs + 1e-8)) * direction
         saved = [p.detach().clone() for p in self.leaves]
-        grad_mode = torch.enable_grad() if self.line_search_grad else torch.no_grad()
         for i in range(self.max_backtracks):
             step = self.backtrack_ratio**i * full_step
             self._set(saved, step)
-            with grad_mode:
+            with torch.no_grad():
                 new_loss, new_kl = (t.detach().item() for t in closure())
             info["backtracks"] = float(i + 1)
             if math.isfinite(new_loss) and new_loss < loss_before and new_kl <= self.max_kl:
