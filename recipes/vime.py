@@ -1,6 +1,6 @@
 """VIME pre-training: TRPO on the information-gain bonus alone (the VIME-init baseline's policy).
 
-    python recipes/vime.py env.name=point_nav                     # 100 iterations of 40 x 100 steps
+    python recipes/vime.py env.name=point_nav                     # 30 iterations of 40 x 100 steps
     python recipes/vime.py env.name=half_cheetah logger.backend=csv
     python recipes/vime.py env.name=point_nav resume=true         # continue from the latest checkpoint
 
