@@ -17,7 +17,8 @@ Rows, per env and batch size ``B`` (policy = the 2x300 Gaussian MLP of :mod:`umr
   policy, TorchRL ``Collector`` with the policy.
 - half_cheetah / ant: ``mujoco.rollout`` open loop on all threads (``ref``: the physics limit), gymnasium's sync
   vector env stepped bare (random actions, no policy), the ``gym`` backend and the ``batched`` backend with the
-  policy (``env.rollout``), and the batched backend alone (random actions).
+  policy (``env.rollout``), and the batched backend alone (random actions); with ``--per-core``, also
+  ``mujoco.rollout`` and the batched env on one thread each (per-core efficiency, free of thread scaling).
 """
 
 from __future__ import annotations
@@ -82,6 +83,24 @@ def _env_step_only(name: str, batch: int, steps: int, raw: bool):
         def run() -> int:
             for _ in range(steps):
                 step(td)
+            return batch * steps
+
+        return run
+
+    return setup
+
+
+def _batched_one_thread(name: str, batch: int, steps: int):
+    """The batched env (no StepCounter) stepped on one thread with a fixed random action: per-core efficiency."""
+
+    def setup():
+        env = BATCHED_ENVS[name](batch, seed=0, num_threads=1)
+        td = env.reset()
+        td["action"] = env.action_spec.rand()
+
+        def run() -> int:
+            for _ in range(steps):
+                env.step(td)
             return batch * steps
 
         return run
@@ -242,6 +261,11 @@ def build_benchmarks(args) -> list[Bench]:
                 (name, b, "batched backend + policy", False, _rollout(name, b, steps, "batched", True)),
                 (name, b, "batched backend alone", False, _rollout(name, b, steps, "batched", False)),
             ]
+            if args.per_core:
+                benches += [
+                    (name, b, "mujoco.rollout open loop, 1 thr", False, _physics_limit(name, b, steps, 1)),
+                    (name, b, "batched env.step alone, 1 thr", False, _batched_one_thread(name, b, steps)),
+                ]
     return benches
 
 
@@ -287,6 +311,9 @@ def main() -> None:
     parser.add_argument("--mujoco-steps", type=int, default=40, help="env steps per repeat (ant: a quarter)")
     parser.add_argument(
         "--threads", type=int, default=NUM_CPUS, help="mujoco.rollout threads (physics limit)"
+    )
+    parser.add_argument(
+        "--per-core", action="store_true", help="add 1-thread rows: mujoco.rollout and the batched env alone"
     )
     parser.add_argument("--torch-threads", type=int, default=1, help="torch intra-op threads (policy)")
     args = parser.parse_args()

@@ -7,6 +7,7 @@ from torchrl.envs.utils import check_env_specs, step_mdp
 
 from umrl.envs import make_task_env
 from umrl.envs.mujoco import MUJOCO_BACKENDS, make_mujoco_env
+from umrl.envs.mujoco_batched import BATCHED_ENVS
 from umrl.envs.tasks import get_task_family
 
 DIMS = {"half_cheetah": (17, 6), "ant": (107, 8)}
@@ -127,3 +128,14 @@ def test_bad_input():
     env = make_mujoco_env("half_cheetah", 2)
     with pytest.raises(ValueError, match=r"qpos \[1, 9\]"):
         env.set_mj_state(np.zeros((1, 8)), np.zeros((1, 9)), env_ids=[0])
+
+
+def test_thread_pool_matches_single_thread():
+    """Stepping the copies on 2 threads gives the same trajectories as on one."""
+    envs = [BATCHED_ENVS["ant"](32, seed=4, num_threads=n) for n in (1, 2)]
+    assert envs[0]._pool is None and envs[1]._pool is not None
+    runs = [_run(env, _actions(32, 8, 5)) for env in envs]
+    for a, b in zip(*runs):
+        assert torch.equal(a["observation"], b["observation"]) and torch.equal(
+            a["env_reward"], b["env_reward"]
+        )
