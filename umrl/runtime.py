@@ -57,9 +57,12 @@ def make_logger(logger_cfg: Mapping, *, exp_name: str, config: Any = None, log_d
             "wandb",
             logger_name=os.environ.get("WANDB_DIR", "."),
             experiment_name=exp_name,
-            project=logger_cfg.get("project", "umrl"),
-            group=logger_cfg.get("group"),
-            mode=mode,
+            wandb_kwargs={
+                "project": logger_cfg.get("project", "umrl"),
+                "group": logger_cfg.get("group"),
+                "offline": mode == "offline",
+                "mode": mode,
+            },
         )
     if config is not None:
         logger.log_hparams(to_container(config))

@@ -1,0 +1,61 @@
+"""Recipe runtime: checkpoints, loggers, seeding, NaN guard."""
+import pytest
+import torch
+
+from umrl.runtime import Checkpointer, check_finite, log_metrics, make_logger, resolve_checkpoint, seed_everything
+
+
+def test_checkpointer_keeps_latest_or_all_and_writes_config(tmp_path):
+    latest_only = Checkpointer(tmp_path / "a")
+    for step in (1, 10, 5):
+        latest_only.save({"step": step}, step, config={"seed": 3})
+    assert [p.name for p in latest_only.all()] == ["step_5.pt"]
+    assert (tmp_path / "a" / "config.yaml").read_text().strip() == "seed: 3"
+
+    keep = Checkpointer(tmp_path / "b", keep_all=True)
+    for step in (2, 10, 7):
+        keep.save({"step": step}, step)
+    assert [p.name for p in keep.all()] == ["step_2.pt", "step_7.pt", "step_10.pt"]
+    assert keep.load()["step"] == 10 and keep.load(keep.all()[0])["step"] == 2
+    assert resolve_checkpoint(tmp_path / "b") == keep.latest()
+    assert not list((tmp_path / "b").glob("*.tmp"))
+
+
+def test_missing_checkpoint_fails_with_a_clear_message(tmp_path):
+    with pytest.raises(FileNotFoundError, match="resume=true"):
+        Checkpointer(tmp_path / "none").load()
+    with pytest.raises(FileNotFoundError, match="step_"):
+        resolve_checkpoint(tmp_path / "none")
+
+
+def test_nan_guard_names_the_bad_loss():
+    check_finite({"loss_a": torch.tensor(1.0)}, "ok")
+    with pytest.raises(FloatingPointError, match="loss_b"):
+        check_finite({"loss_a": torch.tensor(1.0), "loss_b": torch.tensor(float("nan"))}, "update 3")
+
+
+def test_seed_everything_reproduces_draws():
+    seed_everything(7)
+    a = torch.rand(3)
+    seed_everything(7)
+    assert torch.equal(a, torch.rand(3))
+
+
+def test_csv_logger_writes_scalars(tmp_path):
+    logger = make_logger({"backend": "csv"}, exp_name="exp", config={"lr": 0.1}, log_dir=tmp_path)
+    log_metrics(logger, {"train/x": 1.5}, step=3)
+    files = list((tmp_path / "csv").rglob("*.csv"))
+    assert any("1.5" in f.read_text() for f in files)
+    assert make_logger({"backend": "none"}, exp_name="exp") is None
+    with pytest.raises(ValueError, match="valid choices"):
+        make_logger({"backend": "tensorboardx"}, exp_name="exp")
+
+
+def test_wandb_defaults_to_an_offline_run(tmp_path, monkeypatch):
+    monkeypatch.delenv("WANDB_MODE", raising=False)
+    monkeypatch.setenv("WANDB_DIR", str(tmp_path))
+    logger = make_logger({"backend": "wandb", "group": "g"}, exp_name="exp", config={"lr": 0.1})
+    log_metrics(logger, {"train/x": 1.0}, step=0)
+    assert logger.experiment.settings.mode == "offline" and logger.experiment.group == "g"
+    logger.experiment.finish()
+    assert list((tmp_path / "wandb").glob("offline-run-*"))
