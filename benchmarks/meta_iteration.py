@@ -5,9 +5,10 @@
     python benchmarks/meta_iteration.py --hvp-fraction 0.1 --repeats 3
     python benchmarks/meta_iteration.py --override maml.task_loop=true   # any recipes/config/maml.yaml key
 
-One meta-iteration is exactly the recipe's (``recipes/maml.py: meta_iteration``, oracle proposal): pre-update
-collection, inner step, post-update collection with per-task parameters ("collect"), then the TRPO meta-step with
-KL Hessian-vector products through the inner step ("learn"). "env only" steps the same env for the same number of
+One meta-iteration is exactly the recipe's (``recipes/maml.py: meta_iteration``, oracle proposal): pre-update and
+post-update collection with per-task parameters, advantages included ("collect"); the inner adaptation that gives
+the post-update parameters plus the TRPO meta-step with KL Hessian-vector products through the inner step ("learn",
+with the inner step also shown alone). "env only" steps the same env for the same number of
 steps (2 × T × N × H) with random actions and no policy, in the same process, interleaved with the iterations.
 Prints the median of ``--repeats`` runs of each; on a shared machine compare ratios measured in the same run.
 """
@@ -24,7 +25,7 @@ from hydra import compose, initialize_config_dir
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "recipes"))
-from maml import build, meta_iteration  # noqa: E402
+from maml import build, meta_iteration
 
 DEFAULT_TASKS = {"point_nav": 50, "half_cheetah": 20, "ant": 20}
 
@@ -51,7 +52,7 @@ def main() -> None:
     proposal, policy, loss, trpo = build(cfg)
     env = proposal.env
     steps = 2 * env.batch_size.numel() * args.horizon
-    rows = {"env_only_s": [], "collect_s": [], "learn_s": []}
+    rows = {"env_only_s": [], "collect_s": [], "learn_s": [], "inner_s": []}
     for _ in range(args.repeats):
         start = time.perf_counter()
         with torch.no_grad():
@@ -61,6 +62,7 @@ def main() -> None:
         metrics = meta_iteration(cfg, proposal, policy, loss, trpo, generator)
         rows["collect_s"].append(metrics["time/collect_s"])
         rows["learn_s"].append(metrics["time/learn_s"])
+        rows["inner_s"].append(metrics["time/inner_s"])
         print(f"  run: env only {rows['env_only_s'][-1]:.2f}s  collect {metrics['time/collect_s']:.2f}s  "
               f"learn {metrics['time/learn_s']:.2f}s  (backtracks {metrics['train/backtracks']:.0f}, "
               f"kl {metrics['train/kl']:.4f})", flush=True)
@@ -70,7 +72,8 @@ def main() -> None:
     print(f"  env only   {med['env_only_s']:8.2f} s   ({steps / med['env_only_s']:,.0f} steps/s)")
     print(f"  collect    {med['collect_s']:8.2f} s   ({steps / med['collect_s']:,.0f} steps/s, "
           f"{med['collect_s'] / med['env_only_s']:.2f}x env only)")
-    print(f"  learn      {med['learn_s']:8.2f} s   ({med['learn_s'] / med['collect_s']:.2f}x collect)")
+    print(f"  learn      {med['learn_s']:8.2f} s   ({med['learn_s'] / med['collect_s']:.2f}x collect; inner step "
+          f"{med['inner_s']:.2f} s)")
     print(f"  total      {med['collect_s'] + med['learn_s']:8.2f} s per meta-iteration")
 
 

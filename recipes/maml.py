@@ -15,8 +15,9 @@ taken through the inner step (optionally on ``trpo.hvp_fraction`` of the traject
 
 Logged per iteration: ``train/`` return_pre, return_post (mean undiscounted return of the pre/post-update
 trajectories), reward_mean/std/min/max (task rewards of the pre-update batch), kl, surrogate_before,
-improvement, backtracks, accepted, grad_norm, step_norm; ``time/`` collect_s, learn_s, env_steps_per_s,
-env_steps. Checkpoints: ``<output_dir>/checkpoints/step_<iteration>.pt`` (format in :mod:`umrl.maml_checkpoint`).
+improvement, backtracks, accepted, grad_norm, step_norm; ``time/`` collect_s (rollouts + advantages),
+learn_s (inner adaptation for the post-update policy + TRPO meta-step), inner_s (that adaptation alone),
+env_steps_per_s (pre + post env steps per second of collect_s), env_steps. Checkpoints: ``<output_dir>/checkpoints/step_<iteration>.pt`` (format in :mod:`umrl.maml_checkpoint`).
 """
 from __future__ import annotations
 
@@ -49,9 +50,11 @@ def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPO
     proposal.resample(generator)
     support = compute_advantages(collect(proposal.env, policy, num_tasks=num_tasks, horizon=horizon), **adv)
     check_finite({"reward": support["next", "reward"]}, "the pre-update rollouts")
+    inner_start = time.perf_counter()
     with torch.no_grad():
         adapted = loss.adapt(support)
     check_finite(dict(adapted.items(True, True)), "the adapted parameters (inner step)")
+    inner_s = time.perf_counter() - inner_start
     query = collect(proposal.env, policy, num_tasks=num_tasks, horizon=horizon, params=adapted)
     query = compute_advantages(query, **adv)
     collected = time.perf_counter()
@@ -69,7 +72,7 @@ def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPO
 
     reward = support["next", "reward"][support["mask"]]
     steps = 2 * support["mask"].numel()
-    collect_s, learn_s = collected - start, learned - collected
+    collect_s, learn_s = collected - start - inner_s, learned - collected + inner_s
     metrics = {f"train/{k}": v for k, v in info.items()}
     metrics.update({
         "train/return_pre": episode_returns(support).mean().item(),
@@ -80,6 +83,7 @@ def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPO
         "train/reward_max": reward.max().item(),
         "time/collect_s": collect_s,
         "time/learn_s": learn_s,
+        "time/inner_s": inner_s,
         "time/env_steps_per_s": steps / collect_s,
         "time/env_steps": float(steps),
     })
