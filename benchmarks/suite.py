@@ -189,7 +189,7 @@ def pretrain_key(kind: str, env: str, seed: int) -> str:
 
 
 def cell_path(cfg: DictConfig, env: str, method: str, seed: int) -> Path:
-    return Path(cfg.output_dir) / "cells" / env / method / f"seed{seed}.csv"
+    return Path(cfg.output_dir).absolute() / "cells" / env / method / f"seed{seed}.csv"
 
 
 def pretrain_dir(cfg: DictConfig, kind: str, env: str, seed: int) -> Path:
@@ -199,8 +199,8 @@ def pretrain_dir(cfg: DictConfig, kind: str, env: str, seed: int) -> Path:
     if isinstance(template, Mapping) or OmegaConf.is_dict(template):
         template = template.get(proposal)
     if template:
-        return Path(str(template).format(env=env, seed=seed, proposal=proposal))
-    return Path(cfg.output_dir) / "pretrain" / kind / env / f"seed{seed}"
+        return Path(str(template).format(env=env, seed=seed, proposal=proposal)).absolute()
+    return Path(cfg.output_dir).absolute() / "pretrain" / kind / env / f"seed{seed}"
 
 
 def _has_checkpoint(run_dir: Path) -> bool:
@@ -215,6 +215,20 @@ def pretrain_done(cfg: DictConfig, kind: str, env: str, seed: int) -> bool:
     return (run_dir / DONE_MARKER).exists()
 
 
+def hydra_overrides(values: Mapping, prefix: str = "") -> list[str]:
+    """``{"a": {"b": 1}, "c": [1, 2]}`` -> ``["a.b=1", "c=[1,2]"]`` (Hydra command-line overrides)."""
+    out = []
+    for key, value in (to_container(values) if OmegaConf.is_config(values) else dict(values)).items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            out += hydra_overrides(value, prefix=f"{name}.")
+        elif isinstance(value, (list, tuple)):
+            out.append(f"{name}=[{','.join(str(v) for v in value)}]")
+        else:
+            out.append(f"{name}={'null' if value is None else value}")
+    return out
+
+
 def pretrain_command(cfg: DictConfig, kind: str, env: str, seed: int, group: str) -> list[str]:
     """The recipe invocation (Hydra overrides) for one pre-training run; resumes if a checkpoint exists."""
     recipe, _, proposal = kind.partition("_")
@@ -226,7 +240,7 @@ def pretrain_command(cfg: DictConfig, kind: str, env: str, seed: int, group: str
         cmd += [f"proposal={proposal}", "checkpoint.keep_all=true"]
         if proposal == "diayn":
             cmd.append(f"{spec.diayn_checkpoint_key}={pretrain_dir(cfg, 'diayn', env, seed)}")
-    cmd += [str(o) for o in spec.get("overrides") or []]
+    cmd += hydra_overrides(spec.get("overrides") or {})
     if _has_checkpoint(run_dir):
         cmd.append("resume=true")
     return cmd
@@ -234,7 +248,7 @@ def pretrain_command(cfg: DictConfig, kind: str, env: str, seed: int, group: str
 
 def _pretrain_job(cfg: DictConfig, kind: str, env: str, seed: int, group: str) -> Job:
     run_dir = pretrain_dir(cfg, kind, env, seed)
-    log_file = Path(cfg.output_dir) / "logs" / f"{kind}_{env}_seed{seed}.log"
+    log_file = Path(cfg.output_dir).absolute() / "logs" / f"{kind}_{env}_seed{seed}.log"
     log_file.parent.mkdir(parents=True, exist_ok=True)
     deps = (pretrain_key("diayn", env, seed),) if kind == "maml_diayn" else ()
     threads = str(cfg.launcher.threads)
@@ -283,7 +297,9 @@ def plan(cfg: DictConfig, group: str) -> list[Job]:
                 spec = _cell_spec(cfg, method, env, seed, output, checkpoint)
                 key = f"cell/{env}/{method}/seed{seed}"
                 jobs[key] = Job(key=key, fn=run_cell, args=(spec,), deps=deps, done=output.exists)
-    return list(jobs.values())
+    # Pre-training first (DIAYN before the rest: MAML(diayn) waits for it), so the critical path starts at once.
+    rank = {"diayn": 0, "maml_diayn": 1}
+    return sorted(jobs.values(), key=lambda j: (not j.key.startswith("pretrain/"), rank.get(j.key.split("/")[1], 2)))
 
 
 def plan_ablation(cfg: DictConfig) -> list[Job]:
@@ -302,7 +318,7 @@ def plan_ablation(cfg: DictConfig) -> list[Job]:
                 picks = sorted({round(i * (len(files) - 1) / max(count - 1, 1)) for i in range(count)})
                 for file in (files[i] for i in picks):
                     iteration = int(file.stem.split("_")[-1])
-                    output = Path(cfg.output_dir) / "ablation" / env / method / f"seed{seed}" / f"iter{iteration}.csv"
+                    output = Path(cfg.output_dir).absolute() / "ablation" / env / method / f"seed{seed}" / f"iter{iteration}.csv"
                     spec = _cell_spec(cfg, method, env, seed, output, str(file), iteration=iteration,
                                       protocol_overrides={"num_steps": int(cfg.ablation.num_steps)})
                     key = f"ablation/{env}/{method}/seed{seed}/iter{iteration}"
@@ -339,7 +355,7 @@ def report(cfg: DictConfig, group: str, timings: Mapping[str, float]) -> str:
         raise RuntimeError(f"no finished cells under {out / 'cells'}: nothing to report (see {out / 'logs'}).")
     write_rows(rows, out / "results.csv")
     table, records = summary_table(rows, steps=list(cfg.report.steps), methods=list(cfg.methods))
-    plot_adaptation_curves(curves_from_rows(rows), out / "curves.png")
+    plot_adaptation_curves(curves_from_rows(rows, methods=list(cfg.methods)), out / "curves.png")
     settings = OmegaConf.to_yaml(OmegaConf.create({k: to_container(cfg)[k] for k in (
         "envs", "methods", "seeds", "pretrain_seed", "num_tasks", "protocol", "adam_lr", "sgd_lr", "sweep")}))
     lrs = {}

@@ -394,10 +394,16 @@ def run_matrix(rows: Iterable[Mapping], *, env: str, method: str) -> np.ndarray:
     return np.array([[table[run][k] for k in steps] for run in sorted(table)])
 
 
-def curves_from_rows(rows: Sequence[Mapping], *, confidence: float = 0.95) -> dict[str, dict[str, Curve]]:
-    """``{env: {method: Curve}}``: mean return per step over (seed, task) runs with bootstrap CI bands."""
+def curves_from_rows(rows: Sequence[Mapping], *, methods: Sequence[str] | None = None,
+                     confidence: float = 0.95) -> dict[str, dict[str, Curve]]:
+    """``{env: {method: Curve}}``: mean return per step over (seed, task) runs with bootstrap CI bands.
+
+    Methods come in the order of ``methods`` (others after them, sorted).
+    """
+    order = {m: i for i, m in enumerate(methods or [])}
+    pairs = sorted({(r["env"], r["method"]) for r in rows}, key=lambda p: (p[0], order.get(p[1], len(order)), p[1]))
     curves: dict[str, dict[str, Curve]] = {}
-    for env, method in sorted({(r["env"], r["method"]) for r in rows}):
+    for env, method in pairs:
         matrix = run_matrix(rows, env=env, method=method)
         bands = np.array([bootstrap_ci(matrix[:, k], confidence=confidence) for k in range(matrix.shape[1])])
         curves.setdefault(env, {})[method] = Curve(np.arange(matrix.shape[1]), matrix.mean(0), bands[:, 0],

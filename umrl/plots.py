@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import matplotlib
+import matplotlib.ticker
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
@@ -49,6 +50,7 @@ def _panels(curves: Mapping[str, Mapping[str, Curve]], path: str | os.PathLike, 
             ax.plot(curve.x, curve.mean, label=method, color=color, marker=marker)
             ax.fill_between(curve.x, curve.low, curve.high, color=color, alpha=0.2, linewidth=0)
         ax.set_title(panel)
+        ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
         ax.set_xlabel(xlabel)
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
@@ -64,7 +66,7 @@ def _panels(curves: Mapping[str, Mapping[str, Curve]], path: str | os.PathLike, 
 
 def plot_adaptation_curves(curves: Mapping[str, Mapping[str, Curve]], path: str | os.PathLike) -> Path:
     """Mean meta-test return vs adaptation step ``k``, one panel per env, 95 % bands; returns the PNG path."""
-    return _panels(curves, path, xlabel="adaptation step k", ylabel="mean return (20 tasks x seeds)",
+    return _panels(curves, path, xlabel="adaptation step k", ylabel="mean return over tasks x seeds",
                    title="Meta-test adaptation", marker=None)
 
 
