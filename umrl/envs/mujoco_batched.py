@@ -1,10 +1,15 @@
-"""Batched MuJoCo CMPs: ``B`` ``MjData`` copies of gymnasium's own v5 models, stepped as one TorchRL env.
+"""Batched MuJoCo CMPs: ``B`` copies of gymnasium's own v5 models, stepped as one TorchRL env.
 
 :class:`BatchedMujocoEnv` reproduces gymnasium's ``HalfCheetah-v5`` / ``Ant-v5`` semantics exactly (same XML files,
 frame skip, reset noise, reward terms, info values, Ant's healthy termination and clipped contact forces) without
 gymnasium in the step loop. Each copy is advanced by the same calls gymnasium makes (``mj_step(nstep=frame_skip)``,
-plus ``mj_rnePostConstraint`` where contact forces are observed), so trajectories match gymnasium's bit for bit; the
-copies are split over a thread pool (``mj_step`` releases the GIL).
+plus ``mj_rnePostConstraint`` where contact forces are observed), so trajectories match gymnasium's bit for bit.
+
+A copy is its full integration state (``mjSTATE_INTEGRATION``: time, qpos, qvel, act, warm start, controls, applied
+forces; ~100-150 floats), one row of a ``[B, nstate]`` array. Each worker thread owns one ``MjData``, loads a copy's
+row into it, steps it and writes the row back: the ``MjData`` stays in cache (13-30 % faster than keeping ``B``
+``MjData``, measured) and memory stays small (a gymnasium ``MjData`` reserves a 6-15 MB arena). Copies are split
+over a thread pool (``mj_step`` releases the GIL).
 
 Keys (``B`` = batch size, all float32 unless noted): ``"observation"`` ``[B, obs_dim]``, ``"action"`` ``[B, act_dim]``
 in ``[-1, 1]``, ``("next", "reward")`` ``[B, 1]`` zeros (reward-free CMP), ``"env_reward"`` ``[B, 1]`` gymnasium's
@@ -35,7 +40,7 @@ PHYSICS_KEYS: dict[str, dict[str, int]] = {
     "ant": {"xy_position": 2, "x_velocity": 1, "reward_survive": 1, "reward_contact": 1},
 }
 
-_QSTATE = mujoco.mjtState.mjSTATE_QPOS | mujoco.mjtState.mjSTATE_QVEL
+_STATE = int(mujoco.mjtState.mjSTATE_INTEGRATION)
 _MIN_COPIES_PER_THREAD = 16
 
 
@@ -56,6 +61,12 @@ MODEL_SPECS: dict[str, MujocoModelSpec] = {
         "Ant-v5", "ant.xml", gym_kwargs={"exclude_current_positions_from_observation": False}
     ),
 }
+
+
+def _state_slice(model: mujoco.MjModel, component: mujoco.mjtState) -> slice:
+    """Where ``component`` lies in a ``_STATE`` vector (components are laid out in the order of their bits)."""
+    start = mujoco.mj_stateSize(model, _STATE & (int(component) - 1))
+    return slice(start, start + mujoco.mj_stateSize(model, int(component)))
 
 
 def physics_spec(name: str, num_envs: int, device: torch.device | str) -> Composite:
@@ -105,35 +116,24 @@ class BatchedMujocoEnv(EnvBase):
         self._frame_skip = spec.frame_skip  # not `frame_skip`: EnvBase would append a FrameSkipTransform
         self.dt = self.model.opt.timestep * self._frame_skip  # same float as gymnasium's env.dt
         self.reset_noise_scale = spec.reset_noise_scale
-        self._datas = [mujoco.MjData(self.model) for _ in range(num_envs)]
-        self._init_qpos = self._datas[0].qpos.copy()
-        self._init_qvel = self._datas[0].qvel.copy()
         m = self.model
+        qpos = _state_slice(m, mujoco.mjtState.mjSTATE_QPOS)
+        self._ctrl_slice = _state_slice(m, mujoco.mjtState.mjSTATE_CTRL)
         # State buffers [B, ...] in float64; row i is written only by the thread stepping copy i.
-        self._ctrl = np.zeros((num_envs, m.nu))
-        self._qstate = np.zeros((num_envs, m.nq + m.nv))
+        self._state = np.zeros((num_envs, mujoco.mj_stateSize(m, _STATE)))
+        self._qstate = self._state[:, qpos.start : qpos.start + m.nq + m.nv]  # view: qpos then qvel
         self._body_xy = np.zeros((num_envs, 2))  # gymnasium's data.body(1).xpos[:2]
         self._cfrc_ext = np.zeros((num_envs, m.nbody, 6))
-        # Per copy: its MjData, then (our buffer row, MjData field) views used by the step loop.
-        self._rows = [
-            (
-                d,
-                self._ctrl[i],
-                d.ctrl,
-                self._qstate[i],
-                self._body_xy[i],
-                self._cfrc_ext[i],
-                d.xpos[1, :2],
-                d.cfrc_ext,
-            )
-            for i, d in enumerate(self._datas)
-        ]
         if num_threads is None:
             num_threads = len(os.sched_getaffinity(0))
         num_threads = max(1, min(num_threads, num_envs // _MIN_COPIES_PER_THREAD))
         bounds = np.linspace(0, num_envs, num_threads + 1).astype(int)
-        self._chunks = [self._rows[lo:hi] for lo, hi in itertools.pairwise(bounds)]
+        # One worker per thread: its MjData and the (state, torso x-y, contact forces) rows of its copies.
+        rows = list(zip(self._state, self._body_xy, self._cfrc_ext))
+        self._workers = [(mujoco.MjData(m), rows[lo:hi]) for lo, hi in itertools.pairwise(bounds)]
         self._pool = ThreadPoolExecutor(num_threads) if num_threads > 1 else None
+        data = self._workers[0][0]
+        self._init_qpos, self._init_qvel = data.qpos.copy(), data.qvel.copy()
         self._rng = np.random.default_rng(seed)
         self._make_specs()
 
@@ -170,23 +170,34 @@ class BatchedMujocoEnv(EnvBase):
         raise NotImplementedError
 
     # --------------------------------------------------------------------------------------------------- physics
-    def _advance(self, rows) -> None:
-        model, nstep, extras = self.model, self._frame_skip, self._reads_body_and_contacts
-        for d, ctrl, ctrl_dst, qstate, body_xy, cfrc, xpos_src, cfrc_src in rows:
-            ctrl_dst[:] = ctrl
-            mujoco.mj_step(model, d, nstep)
-            mujoco.mj_getState(model, d, qstate, _QSTATE)
+    def _advance(self, worker) -> None:
+        """Step each copy of ``worker``: load its state, ``mj_step`` ``frame_skip`` times, store the state back."""
+        (data, rows), model, nstep = worker, self.model, self._frame_skip
+        extras = self._reads_body_and_contacts
+        xpos, cfrc_ext = data.xpos[1, :2], data.cfrc_ext
+        for state, body_xy, cfrc in rows:
+            mujoco.mj_setState(model, data, state, _STATE)
+            mujoco.mj_step(model, data, nstep)
+            mujoco.mj_getState(model, data, state, _STATE)
             if extras:  # the mj_rnePostConstraint call is gymnasium's MujocoEnv._step_mujoco_simulation's
-                mujoco.mj_rnePostConstraint(model, d)
-                cfrc[:] = cfrc_src
-                body_xy[:] = xpos_src
+                mujoco.mj_rnePostConstraint(model, data)
+                body_xy[:] = xpos
+                cfrc[:] = cfrc_ext
 
-    def _read(self, rows) -> None:
-        """Refresh the state buffers of ``rows`` after a reset or :meth:`set_mj_state`."""
-        for d, _, _, qstate, body_xy, cfrc, xpos_src, cfrc_src in rows:
-            mujoco.mj_getState(self.model, d, qstate, _QSTATE)
-            body_xy[:] = xpos_src
-            cfrc[:] = cfrc_src
+    def _set_copies(self, ids, qpos: np.ndarray, qvel: np.ndarray, *, reset: bool) -> None:
+        """Gymnasium's ``set_state`` (after ``mj_resetData`` if ``reset``) for copies ``ids``, on the main thread."""
+        model, data = self.model, self._workers[0][0]
+        for i, qp, qv in zip(ids, qpos, qvel):
+            if reset:
+                mujoco.mj_resetData(model, data)
+            else:
+                mujoco.mj_setState(model, data, self._state[i], _STATE)
+            data.qpos[:] = qp
+            data.qvel[:] = qv
+            mujoco.mj_forward(model, data)
+            mujoco.mj_getState(model, data, self._state[i], _STATE)
+            self._body_xy[i] = data.xpos[1, :2]
+            self._cfrc_ext[i] = data.cfrc_ext
 
     def set_mj_state(self, qpos: np.ndarray, qvel: np.ndarray, env_ids=None) -> None:
         """Gymnasium's ``set_state`` for copies ``env_ids`` (default all): ``qpos`` ``[n, nq]``, ``qvel`` ``[n, nv]``."""
@@ -197,12 +208,7 @@ class BatchedMujocoEnv(EnvBase):
                 f"expected qpos [{len(ids)}, {self.model.nq}] and qvel [{len(ids)}, {self.model.nv}], "
                 f"got {list(qpos.shape)} and {list(qvel.shape)}."
             )
-        for i, qp, qv in zip(ids, qpos, qvel):
-            d = self._datas[i]
-            d.qpos[:] = qp
-            d.qvel[:] = qv
-            mujoco.mj_forward(self.model, d)
-        self._read([self._rows[i] for i in ids])
+        self._set_copies(ids, qpos, qvel, reset=False)
 
     # ---------------------------------------------------------------------------------------------- EnvBase API
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
@@ -213,9 +219,7 @@ class BatchedMujocoEnv(EnvBase):
         # gymnasium's reset_model: uniform qpos noise, then standard-normal qvel noise, from one generator.
         qpos = self._init_qpos + self._rng.uniform(low=-s, high=s, size=(len(ids), self.model.nq))
         qvel = self._init_qvel + s * self._rng.standard_normal((len(ids), self.model.nv))
-        for i in ids:
-            mujoco.mj_resetData(self.model, self._datas[i])
-        self.set_mj_state(qpos, qvel, ids)
+        self._set_copies(ids, qpos, qvel, reset=True)
         return self._output(np.zeros(B), self._physics_at_reset(), np.zeros(B, dtype=bool))
 
     def _physics_at_reset(self) -> dict[str, np.ndarray]:
@@ -230,11 +234,11 @@ class BatchedMujocoEnv(EnvBase):
         action = tensordict.get("action").detach().to("cpu", torch.float32).numpy()
         qpos_before = self._qstate[:, : self.model.nq].copy()
         xy_before = self._body_xy.copy()
-        self._ctrl[:] = action
+        self._state[:, self._ctrl_slice] = action
         if self._pool is None:
-            self._advance(self._rows)
+            self._advance(self._workers[0])
         else:
-            list(self._pool.map(self._advance, self._chunks))
+            list(self._pool.map(self._advance, self._workers))
         env_reward, physics, terminated = self._step_values(action, qpos_before, xy_before)
         out = self._output(env_reward, physics, terminated)
         out.set("reward", torch.zeros(self.batch_size[0], 1, device=self.device))
