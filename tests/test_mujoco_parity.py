@@ -61,7 +61,12 @@ def test_trajectory_matches_gymnasium(name, z):
     env.set_mj_state(qpos[None], qvel[None], env_ids=[COPY])
     torch.testing.assert_close(env._observe()[COPY], gym_env._get_obs(), atol=0, rtol=0)
     terminated = []
-    for _ in range(STEPS):
+    for t in range(STEPS):
+        if t == STEPS // 2:  # set_state mid-episode keeps warm start, controls and last contact forces
+            qpos, qvel = _initial_state(gym_env, rng, z)
+            gym_env.set_state(qpos, qvel)
+            env.set_mj_state(qpos[None], qvel[None], env_ids=[COPY])
+            np.testing.assert_array_equal(env._observe()[COPY], gym_env._get_obs())
         # actions up to 1.2: the simulator clips them, the control cost does not
         action = rng.uniform(-1.2, 1.2, (BATCH, gym_env.action_space.shape[0])).astype(np.float32)
         obs, reward, term, _, info = gym_env.step(action[COPY])

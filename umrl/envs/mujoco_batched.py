@@ -190,8 +190,9 @@ class BatchedMujocoEnv(EnvBase):
         for i, qp, qv in zip(ids, qpos, qvel):
             if reset:
                 mujoco.mj_resetData(model, data)
-            else:
+            else:  # gymnasium's set_state keeps the copy's own state, incl. its last contact forces
                 mujoco.mj_setState(model, data, self._state[i], _STATE)
+                data.cfrc_ext[:] = self._cfrc_ext[i]
             data.qpos[:] = qp
             data.qvel[:] = qv
             mujoco.mj_forward(model, data)
