@@ -20,13 +20,12 @@ from __future__ import annotations
 
 import os
 
-import torch
 from tensordict.nn import TensorDictModule
 from torchrl.modules import ProbabilisticActor
 
 from umrl.modules.discriminator import make_discriminator
 from umrl.modules.sac import make_skill_actor
-from umrl.runtime import resolve_checkpoint
+from umrl.runtime import load_checkpoint
 
 FORMAT = "umrl.diayn.v1"
 
@@ -35,12 +34,7 @@ __all__ = ["FORMAT", "load_diayn_checkpoint", "load_discriminator", "load_skill_
 
 def load_diayn_checkpoint(path: str | os.PathLike) -> dict:
     """Load a DIAYN checkpoint: a ``step_*.pt`` file, a ``checkpoints/`` folder or a run's output_dir (latest)."""
-    file = resolve_checkpoint(path)
-    state = torch.load(file, map_location="cpu", weights_only=False)
-    if not isinstance(state, dict) or state.get("format") != FORMAT:
-        found = state.get("format") if isinstance(state, dict) else type(state).__name__
-        raise ValueError(f"{file} is not a DIAYN checkpoint (format {found!r}, expected {FORMAT!r}).")
-    return state
+    return load_checkpoint(path, format=FORMAT, what="DIAYN")
 
 
 def load_discriminator(path: str | os.PathLike) -> tuple[TensorDictModule, int, int]:

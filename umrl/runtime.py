@@ -160,3 +160,14 @@ def resolve_checkpoint(path: str | os.PathLike) -> Path:
         if latest is not None:
             return latest
     raise FileNotFoundError(f"no checkpoint file at {path} (looked for step_*.pt in it and in {path / 'checkpoints'}).")
+
+
+def load_checkpoint(path: str | os.PathLike, *, format: str, what: str) -> dict:
+    """Load the checkpoint at ``path`` (a ``step_*.pt`` file, a ``checkpoints/`` folder or a run's output_dir: the
+    latest) and check that it carries ``state["format"] == format``; ``what`` names the recipe in the error."""
+    file = resolve_checkpoint(path)
+    state = torch.load(file, map_location="cpu", weights_only=False)
+    if not isinstance(state, dict) or state.get("format") != format:
+        found = state.get("format") if isinstance(state, dict) else type(state).__name__
+        raise ValueError(f"{file} is not a {what} checkpoint (format {found!r}, expected {format!r}).")
+    return state

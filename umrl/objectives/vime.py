@@ -32,7 +32,7 @@ from torchrl.objectives.common import LossModule
 
 from umrl.modules.bnn import BayesianDynamics
 from umrl.modules.policy import make_gaussian_policy
-from umrl.runtime import resolve_checkpoint
+from umrl.runtime import load_checkpoint
 
 FORMAT = "umrl.vime.v1"
 
@@ -137,12 +137,7 @@ class VIMELoss(LossModule):
 
 def load_vime_checkpoint(path: str | os.PathLike) -> dict:
     """Load a VIME checkpoint: a ``step_*.pt`` file, a ``checkpoints/`` folder or a run's output_dir (latest)."""
-    file = resolve_checkpoint(path)
-    state = torch.load(file, map_location="cpu", weights_only=False)
-    if not isinstance(state, dict) or state.get("format") != FORMAT:
-        found = state.get("format") if isinstance(state, dict) else type(state).__name__
-        raise ValueError(f"{file} is not a VIME checkpoint (format {found!r}, expected {FORMAT!r}).")
-    return state
+    return load_checkpoint(path, format=FORMAT, what="VIME")
 
 
 def load_vime_policy(path: str | os.PathLike) -> ProbabilisticActor:
