@@ -56,7 +56,11 @@ def make_env(
         base = make_mujoco_env(
             name, num_envs, seed=seed, device=device, backend="batched" if backend == "default" else backend
         )
-    env = TransformedEnv(base, StepCounter(max_steps=horizon))
+    if isinstance(base, TransformedEnv):  # the gym backend already carries transforms: extend them, don't nest
+        base.append_transform(StepCounter(max_steps=horizon))
+        env = base
+    else:
+        env = TransformedEnv(base, StepCounter(max_steps=horizon))
     if seed is not None:
         env.set_seed(seed)
     return env
