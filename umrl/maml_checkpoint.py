@@ -18,11 +18,10 @@ from __future__ import annotations
 
 import os
 
-import torch
 from torchrl.modules import ProbabilisticActor
 
 from umrl.modules.policy import make_gaussian_policy
-from umrl.runtime import resolve_checkpoint
+from umrl.runtime import load_checkpoint
 
 FORMAT = "umrl.maml.v1"
 
@@ -31,12 +30,7 @@ __all__ = ["FORMAT", "load_maml_checkpoint", "load_maml_policy"]
 
 def load_maml_checkpoint(path: str | os.PathLike) -> dict:
     """Load a MAML checkpoint: a ``step_*.pt`` file, a ``checkpoints/`` folder or a run's output_dir (latest)."""
-    file = resolve_checkpoint(path)
-    state = torch.load(file, map_location="cpu", weights_only=False)
-    if not isinstance(state, dict) or state.get("format") != FORMAT:
-        found = state.get("format") if isinstance(state, dict) else type(state).__name__
-        raise ValueError(f"{file} is not a MAML checkpoint (format {found!r}, expected {FORMAT!r}).")
-    return state
+    return load_checkpoint(path, format=FORMAT, what="MAML")
 
 
 def load_maml_policy(path: str | os.PathLike) -> tuple[ProbabilisticActor, float]:
