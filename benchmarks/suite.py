@@ -136,7 +136,7 @@ def run_jobs(jobs: Sequence[Job], launcher, *, log: Callable[[str], None] = prin
     """Run ``jobs`` respecting dependencies; returns (succeeded keys, {failed or blocked key: reason}).
 
     Jobs whose ``done()`` is true are not run. At most ``launcher.slots`` jobs run at once, so the wall time of each
-    job (written into ``timings``) excludes queueing. A failure does not stop independent jobs; its dependants are
+    successful job (written into ``timings``) excludes queueing. A failure does not stop independent jobs; its dependants are
     blocked.
     """
     keys = {job.key for job in jobs}
@@ -167,7 +167,7 @@ def run_jobs(jobs: Sequence[Job], launcher, *, log: Callable[[str], None] = prin
         finished, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
         for future in finished:
             job = running.pop(future)
-            timings[job.key] = time.perf_counter() - started[job.key]
+            seconds = time.perf_counter() - started[job.key]
             try:
                 future.result()
                 job.on_success()
@@ -176,7 +176,8 @@ def run_jobs(jobs: Sequence[Job], launcher, *, log: Callable[[str], None] = prin
                 log(f"[fail] {job.key}: {failed[job.key]}")
             else:
                 succeeded.add(job.key)
-                log(f"[done] {job.key} ({timings[job.key]:.0f} s)")
+                timings[job.key] = seconds
+                log(f"[done] {job.key} ({seconds:.0f} s)")
     return succeeded, failed
 
 
@@ -365,7 +366,7 @@ def report(cfg: DictConfig, group: str, timings: Mapping[str, float]) -> str:
             lrs.setdefault((info["env"], info["method"]), set()).add(round(info["lr"], 6))
     lr_lines = [f"- {env} / {method}: lr {sorted(v)}" for (env, method), v in sorted(lrs.items())]
     time_lines = [f"- {k}: {v:.0f} s" for k, v in timings.items()] + [
-        "", "(Jobs of an earlier, interrupted invocation are not counted; every invocation is in timings.json.)"]
+        "", "(Jobs run with launcher.workers in parallel; per-job times of every invocation are in timings.json.)"]
     markdown = (f"# Benchmark suite `{cfg.profile_name}`\n\nMeta-test return (IQM over tasks x seeds, 95% bootstrap "
                 f"CI); AUC = trapezoidal area under the return curve over k = 0..K.\n\n{table}\n"
                 f"## Meta-test learning rates\n\n" + "\n".join(lr_lines) + "\n\n## Wall time\n\n"
@@ -432,6 +433,20 @@ def suite_group(cfg: DictConfig) -> str:
     return group
 
 
+def summarize_timings(history: Sequence[Mapping]) -> dict[str, float]:
+    """Wall times for the report: each invocation, each pre-training job and the mean cell (latest successful runs)."""
+    jobs: dict[str, float] = {}
+    for invocation in history:
+        jobs.update(invocation["jobs"])
+    timings = {f"suite invocation {i + 1} (wall)": inv["wall"] for i, inv in enumerate(history)}
+    timings.update({k: v for k, v in jobs.items() if k.startswith("pretrain/")})
+    for prefix in ("cell/", "ablation/"):
+        cells = [v for k, v in jobs.items() if k.startswith(prefix)]
+        if cells:
+            timings[f"{prefix}* ({len(cells)} jobs, mean per job)"] = sum(cells) / len(cells)
+    return timings
+
+
 def run_suite(cfg: DictConfig, *, log: Callable[[str], None] = print) -> str:
     """Plan, run (resuming), ablate and report; raises if any job failed (after reporting what finished)."""
     group = suite_group(cfg)
@@ -444,18 +459,11 @@ def run_suite(cfg: DictConfig, *, log: Callable[[str], None] = print) -> str:
             failed.update(run_jobs(plan_ablation(cfg), launcher, log=log, timings=job_times)[1])
     finally:
         launcher.shutdown()
-    timings = {"suite wall time (this invocation)": time.perf_counter() - start}
-    for key, seconds in job_times.items():
-        if key.startswith("pretrain/"):
-            timings[key] = seconds
-    for prefix in ("cell/", "ablation/"):
-        cells = [v for k, v in job_times.items() if k.startswith(prefix)]
-        if cells:
-            timings[f"{prefix}* ({len(cells)} jobs, mean)"] = sum(cells) / len(cells)
     timings_file = Path(cfg.output_dir) / "timings.json"
-    previous = json.loads(timings_file.read_text()) if timings_file.exists() else []
-    timings_file.write_text(json.dumps(previous + [{"jobs": job_times, "wall": timings}], indent=1))
-    markdown = report(cfg, group, timings)
+    history = json.loads(timings_file.read_text()) if timings_file.exists() else []
+    history.append({"wall": time.perf_counter() - start, "jobs": job_times})
+    timings_file.write_text(json.dumps(history, indent=1))
+    markdown = report(cfg, group, summarize_timings(history))
     log(markdown)
     log(f"reports in {Path(cfg.output_dir).resolve()} (wandb group {group})")
     if failed:
