@@ -6,6 +6,6 @@ os.environ.setdefault("WANDB_MODE", "disabled")
 os.environ.setdefault("HYDRA_FULL_ERROR", "1")
 warnings.filterwarnings("ignore", message=".*settotalmass.*")
 
-import torch  # noqa: E402
+import torch
 
 torch.set_num_threads(1)

@@ -2,7 +2,14 @@
 import pytest
 import torch
 
-from umrl.runtime import Checkpointer, check_finite, log_metrics, make_logger, resolve_checkpoint, seed_everything
+from umrl.runtime import (
+    Checkpointer,
+    check_finite,
+    log_metrics,
+    make_logger,
+    resolve_checkpoint,
+    seed_everything,
+)
 
 
 def test_checkpointer_keeps_latest_or_all_and_writes_config(tmp_path):

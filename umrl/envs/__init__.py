@@ -79,4 +79,4 @@ def make_task_env(name: str, tasks: torch.Tensor, **kwargs) -> TransformedEnv:
     return env
 
 
-__all__ = ["ENV_NAMES", "make_env", "make_task_env", "get_task_family"]
+__all__ = ["ENV_NAMES", "get_task_family", "make_env", "make_task_env"]
