@@ -79,7 +79,7 @@ def test_second_order_meta_gradient_matches_central_finite_differences():
     torch.testing.assert_close(first, torch.cat([g.sum(0).reshape(-1) for g in d_phi]))
 
 
-@pytest.mark.parametrize("task_loop", [False, True])
+@pytest.mark.parametrize("task_loop", [False, True, None])
 def test_meta_gradient_reaches_every_parameter(task_loop):
     policy = _policy(dtype=torch.float32)
     loss_module = MAMLLoss(policy, task_loop=task_loop)

@@ -41,11 +41,16 @@ class FunctionalPolicy:
         policy: the actor; its last module must be the probabilistic head (``loc``/``scale`` -> distribution).
 
     Keyword Args:
-        task_loop: evaluate per-task params with a Python loop over tasks instead of ``vmap`` (for large per-task
-            batches on CPU the loop can be faster; see ``benchmarks/meta_iteration.py``).
+        task_loop: how per-task params are evaluated: ``True`` a Python loop over tasks, ``False`` one
+            ``vmap`` call, ``None`` (default) the faster of the two by the per-task batch size: the loop from
+            ``LOOP_MIN_PER_TASK`` samples per task up (measured on CPU, 2×300 MLP: at 4000 samples per task the loop
+            ran the inner step ~1.4× faster than vmap; at 400 per task, e.g. subsampled Hessian-vector products or
+            one env step of collection, vmap was ~1.7× faster). Results agree to float rounding either way.
     """
 
-    def __init__(self, policy: ProbabilisticActor, *, task_loop: bool = False):
+    LOOP_MIN_PER_TASK = 1000
+
+    def __init__(self, policy: ProbabilisticActor, *, task_loop: bool | None = None):
         self.policy = policy
         self.net = TensorDictSequential(*policy.module[:-1])  # shares the modules: same parameter names
         self.head = policy.module[-1]
@@ -68,7 +73,8 @@ class FunctionalPolicy:
                 f"per-task params have batch size {tuple(params.batch_size)} but the data's leading dims are "
                 f"{tuple(td.batch_size)}: the data must be shaped [T, ...] with T = number of tasks."
             )
-        if self.task_loop:
+        loop = self.task_loop if self.task_loop is not None else td.batch_size[1:].numel() >= self.LOOP_MIN_PER_TASK
+        if loop:
             return torch.stack([self._call(self._flat(params[i]), inputs[i]) for i in range(params.shape[0])])
         return torch.func.vmap(self._call, (0, 0), randomness="error")(self._flat(params), inputs)
 

@@ -55,7 +55,8 @@ class MAMLLoss(LossModule):
         num_inner_steps: inner steps (default 1). Every step uses the same support batch. ``0`` makes ``adapt`` the
             identity, so the loss is plain policy gradient on the query batch.
         first_order: drop the second-order terms (FOMAML): inner gradients are treated as constants.
-        task_loop: evaluate per-task parameters with a Python loop over tasks rather than ``vmap``.
+        task_loop: evaluate per-task parameters with a Python loop over tasks (``True``), with ``vmap`` (``False``)
+            or whichever is faster for the batch at hand (``None``, default; see :class:`umrl.rollout.FunctionalPolicy`).
 
     Inputs to :meth:`forward` (both ``[T, N, H]``, see :func:`umrl.rollout.collect`): ``support`` with
     ``"observation"``, ``"action"``, ``"advantage"``, ``"mask"``, ``("next", "reward")``; ``query`` with the same
@@ -87,7 +88,7 @@ class MAMLLoss(LossModule):
         inner_lr: float = 0.1,
         num_inner_steps: int = 1,
         first_order: bool = False,
-        task_loop: bool = False,
+        task_loop: bool | None = None,
     ) -> None:
         super().__init__()
         if inner_lr <= 0 or num_inner_steps < 0:
