@@ -13,6 +13,8 @@ def test_conjugate_gradient_solves_random_spd_system():
     b = torch.randn(20, generator=g, dtype=torch.float64)
     x = conjugate_gradient(lambda v: a @ v, b, iters=40, residual_tol=1e-24)
     torch.testing.assert_close(x, torch.linalg.solve(a, b), rtol=1e-8, atol=1e-8)
+    x5, ax5 = conjugate_gradient(lambda v: a @ v, b, iters=5, with_product=True)
+    torch.testing.assert_close(ax5, a @ x5, rtol=1e-10, atol=1e-10)  # the product CG accumulates, no extra matvec
 
 
 def test_conjugate_gradient_rejects_matrix_rhs():

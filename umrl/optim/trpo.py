@@ -41,7 +41,8 @@ def conjugate_gradient(
     *,
     iters: int = 10,
     residual_tol: float = 1e-10,
-) -> torch.Tensor:
+    with_product: bool = False,
+) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """Approximately solve ``A x = b`` for symmetric positive-definite ``A`` given only ``matvec(v) = A v``.
 
     Args:
@@ -51,13 +52,16 @@ def conjugate_gradient(
     Keyword Args:
         iters: maximum number of iterations (matvec calls).
         residual_tol: stop early once the squared residual norm falls below it.
+        with_product: also return ``A x``, accumulated as ``Σ αᵢ A pᵢ`` from the products CG already took (equal to
+            ``matvec(x)`` up to float rounding, without the extra call).
 
     Returns:
-        ``x`` with the shape of ``b``.
+        ``x`` with the shape of ``b``, or ``(x, A x)`` with ``with_product``.
     """
     if b.dim() != 1:
         raise ValueError(f"conjugate_gradient expects a 1-D right-hand side, got shape {tuple(b.shape)}.")
     x = torch.zeros_like(b)
+    ax = torch.zeros_like(b)
     r = b.clone()
     p = b.clone()
     rr = r.dot(r)
@@ -67,11 +71,12 @@ def conjugate_gradient(
         ap = matvec(p)
         alpha = rr / p.dot(ap)
         x = x + alpha * p
+        ax = ax + alpha * ap
         r = r - alpha * ap
         rr_new = r.dot(r)
         p = r + (rr_new / rr) * p
         rr = rr_new
-    return x
+    return (x, ax) if with_product else x
 
 
 class TRPOStep:
@@ -179,8 +184,8 @@ class TRPOStep:
                     return undamped(v) + self.damping * v
             else:
                 damped = self.hvp_builder(kl if hvp_closure is None else hvp_closure())
-            direction = conjugate_gradient(damped, grad, iters=self.cg_iters)
-            shs = direction.dot(damped(direction)).item()
+            direction, h_direction = conjugate_gradient(damped, grad, iters=self.cg_iters, with_product=True)
+            shs = direction.dot(h_direction).item()
         del damped, kl, loss
         info = {
             "surrogate_before": loss_before,
