@@ -51,23 +51,29 @@ def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPO
     support = compute_advantages(collect(proposal.env, policy, num_tasks=num_tasks, horizon=horizon), **adv)
     check_finite({"reward": support["next", "reward"]}, "the pre-update rollouts")
     inner_start = time.perf_counter()
-    with torch.no_grad():
+    with torch.enable_grad():  # the graph (second order unless first_order) is reused by the meta-step below
         adapted = loss.adapt(support)
     check_finite(dict(adapted.items(True, True)), "the adapted parameters (inner step)")
     inner_s = time.perf_counter() - inner_start
-    query = collect(proposal.env, policy, num_tasks=num_tasks, horizon=horizon, params=adapted)
+    query = collect(proposal.env, policy, num_tasks=num_tasks, horizon=horizon, params=adapted.detach())
     query = compute_advantages(query, **adv)
     collected = time.perf_counter()
 
     fraction = cfg.trpo.hvp_fraction
+    with torch.enable_grad():  # the meta-step's first evaluation, through the inner step's graph
+        initial = loss.objective_and_kl(support, query, phi=adapted)
+
+    def closure():
+        return loss.objective_and_kl(support, query)
+
     if cfg.trpo.hvp == "gauss_newton":
-        info = trpo(lambda: loss.objective_and_kl(support, query),
+        info = trpo(closure, initial=initial,
                     hvp=lambda: loss.gauss_newton_hvp(support, query, fraction=fraction, generator=generator))
     elif fraction < 1:
-        info = trpo(lambda: loss.objective_and_kl(support, query),
-                    lambda: loss.hvp_kl(support, query, fraction=fraction, generator=generator))
+        info = trpo(closure, lambda: loss.hvp_kl(support, query, fraction=fraction, generator=generator),
+                    initial=initial)
     else:  # the closure's own KL graph
-        info = trpo(lambda: loss.objective_and_kl(support, query))
+        info = trpo(closure, initial=initial)
     learned = time.perf_counter()
 
     reward = support["next", "reward"][support["mask"]]

@@ -72,3 +72,27 @@ def test_line_search_accepts_improving_step_within_kl_bound():
     # natural-gradient direction: H^{-1} c with H = diag(curvature)
     torch.testing.assert_close(step / step.norm(), (c / curvature) / (c / curvature).norm(), rtol=1e-4, atol=1e-5)
     assert 4 * 0.5 * (curvature * step.pow(2)).sum() <= 0.01 + 1e-6
+
+
+def test_initial_value_replaces_the_first_closure_call():
+    params = _params(2)
+    theta0 = _flat(params).clone()
+    c = torch.linspace(-1, 1, theta0.numel())
+    calls = []
+
+    def closure():
+        calls.append(torch.is_grad_enabled())
+        delta = torch.cat([p.reshape(-1) for p in params.values(True, True)]) - theta0
+        return (c * delta).sum(), 0.5 * delta.pow(2).sum()
+
+    trpo = TRPOStep(params, max_kl=0.01)
+    reference = trpo(closure)
+    stepped = _flat(params)
+    assert calls[0] and not any(calls[1:])  # one graph-building call, then no_grad trials
+    with torch.no_grad():
+        for p, p0 in zip(params.values(True, True), theta0.split([p.numel() for p in params.values(True, True)])):
+            p.copy_(p0.view_as(p))
+    calls.clear()
+    info = trpo(closure, initial=closure())
+    assert len(calls) == 1 + info["backtracks"]  # the given value, then only line-search trials
+    assert info == reference and torch.equal(_flat(params), stepped)

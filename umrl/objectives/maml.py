@@ -156,9 +156,15 @@ class MAMLLoss(LossModule):
         kl = gaussian_kl(query[keys.loc], query[keys.scale], dist_params["loc"], dist_params["scale"])
         return surrogate, _masked_mean(kl, query[keys.mask]), ratio
 
-    def objective_and_kl(self, support: TensorDictBase, query: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(loss_objective, kl)`` as differentiable scalars: the closure for :class:`umrl.optim.trpo.TRPOStep`."""
-        surrogate, kl, _ = self._surrogate_and_kl(self.adapt(support), query)
+    def objective_and_kl(
+        self, support: TensorDictBase, query: TensorDictBase, phi: TensorDictBase | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(loss_objective, kl)`` as differentiable scalars: the closure for :class:`umrl.optim.trpo.TRPOStep`.
+
+        ``phi``: ``self.adapt(support)`` at the current θ if already computed (with its graph, to differentiate
+        through it), e.g. the adaptation that gave the query's collecting parameters; saves redoing the inner step.
+        """
+        surrogate, kl, _ = self._surrogate_and_kl(self.adapt(support) if phi is None else phi, query)
         return surrogate, kl
 
     def hvp_kl(

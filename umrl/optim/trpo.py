@@ -7,6 +7,7 @@ policy updates. It is agnostic to what the surrogate is: it only needs
   parameters (the loss to minimise, and the mean KL divergence between the policy that collected the data and the
   current one). It is called once with gradients enabled to build the step and once per line-search trial under
   ``torch.no_grad`` (a closure that differentiates internally, like MAML's inner step, re-enables grad itself).
+  The first call can be replaced by its ready value (``initial=``) when the caller already has it.
 * optionally ``hvp_closure() -> kl``: the KL whose Hessian-vector products drive conjugate gradient, e.g. the same
   KL on a subsample of the batch. Defaults to the ``kl`` returned by ``closure``. Or ``hvp() -> (v -> H v)``: a
   ready-made Hessian-vector product (MAML's Gauss-Newton form avoids third-order derivatives).
@@ -163,14 +164,17 @@ class TRPOStep:
         hvp_closure: Callable[[], torch.Tensor] | None = None,
         *,
         hvp: Callable[[], Callable[[torch.Tensor], torch.Tensor]] | None = None,
+        initial: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> dict[str, float]:
         """One step. ``hvp_closure() -> kl`` replaces the closure's KL for the Hessian-vector products; ``hvp() ->
         (v -> H v)`` replaces them altogether (an undamped product on flat vectors ordered like the params' leaves,
-        e.g. ``MAMLLoss.gauss_newton_hvp``); at most one of the two."""
+        e.g. ``MAMLLoss.gauss_newton_hvp``); at most one of the two. ``initial``: ``closure()``'s value at the
+        current parameters, already computed with its graph (e.g. reusing MAML's inner-step graph); the closure is
+        then only called for line-search trials."""
         if hvp is not None and hvp_closure is not None:
             raise ValueError("give either hvp_closure or hvp, not both.")
         with torch.enable_grad():
-            loss, kl = closure()
+            loss, kl = closure() if initial is None else initial
             if loss.dim() != 0 or kl.dim() != 0:
                 raise ValueError(f"closure must return two scalars, got shapes {loss.shape} and {kl.shape}.")
             loss_before = loss.item()
