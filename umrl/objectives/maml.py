@@ -232,9 +232,9 @@ class MAMLLoss(LossModule):
             for key, p, g in zip(keys, theta_leaves, grads):
                 phi.set(key, (p - self.inner_lr * g).detach().requires_grad_(True))
             phi_leaves = [phi.get(k) for k in keys]
-            old = self.functional_policy.dist_params(phi.detach(), query)
-            new = self.functional_policy.dist_params(phi, query)
-            kl = _masked_mean(gaussian_kl(old["loc"], old["scale"], new["loc"], new["scale"]), query["mask"])
+            new = self.functional_policy.dist_params(phi, query)  # phi is a leaf: the stop-gradient copy is new's value
+            kl = gaussian_kl(new["loc"].detach(), new["scale"].detach(), new["loc"], new["scale"])
+            kl = _masked_mean(kl, query["mask"])
             kl_grads = torch.autograd.grad(kl, phi_leaves, create_graph=True)
         shapes = [p.shape[1:] for p in phi_leaves]
         sizes = [s.numel() for s in shapes]
