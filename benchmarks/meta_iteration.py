@@ -27,6 +27,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "recipes"))
 from maml import build, meta_iteration
 
+from umrl.runtime import seed_everything
+
 DEFAULT_TASKS = {"point_nav": 50, "half_cheetah": 20, "ant": 20}
 
 
@@ -48,7 +50,7 @@ def main() -> None:
     with initialize_config_dir(config_dir=str(REPO / "recipes" / "config"), version_base="1.3"):
         cfg = compose("maml", overrides=overrides)
     torch.set_num_threads(args.threads)
-    generator = torch.Generator().manual_seed(0)
+    generator = seed_everything(cfg.seed)  # same policy init and data in every run: variants do the same work
     proposal, policy, loss, trpo = build(cfg)
     env = proposal.env
     steps = 2 * env.batch_size.numel() * args.horizon
