@@ -16,7 +16,8 @@ taken through the inner step (optionally on ``trpo.hvp_fraction`` of the traject
 Logged per iteration: ``train/`` return_pre, return_post (mean undiscounted return of the pre/post-update
 trajectories), reward_mean/std/min/max (task rewards of the pre-update batch), kl, surrogate_before,
 improvement, backtracks, accepted, grad_norm, step_norm; ``time/`` collect_s (rollouts + advantages),
-learn_s (inner adaptation for the post-update policy + TRPO meta-step), inner_s (that adaptation alone),
+learn_s (inner adaptation for the post-update policy + TRPO meta-step), inner_s (that adaptation alone, built
+with the graph the meta-step differentiates through),
 env_steps_per_s (pre + post env steps per second of collect_s), env_steps. Checkpoints: ``<output_dir>/checkpoints/step_<iteration>.pt`` (format in :mod:`umrl.maml_checkpoint`).
 """
 from __future__ import annotations
