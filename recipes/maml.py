@@ -153,6 +153,8 @@ def train(cfg: DictConfig) -> dict:
             "config": to_container(cfg),
         }, iteration, cfg)
 
+    if state is None:
+        save()  # iteration 0: the initialisation before meta-training, the ablation's first point
     logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, config=cfg, log_dir=out_dir)
     metrics: dict[str, float] = {}
     progress = tqdm.tqdm(total=cfg.iterations, initial=iteration, disable=not cfg.progress, desc="meta-iterations")

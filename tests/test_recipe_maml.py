@@ -44,7 +44,10 @@ def test_two_iterations_per_proposal(tmp_path, proposal):
                 "time/learn_s", "time/env_steps_per_s", "train/reward_mean"):
         assert torch.isfinite(torch.tensor(result[key])), key
     assert result["train/kl"] <= 0.01
-    assert [p.name for p in Checkpointer(out / "checkpoints").all()] == ["step_1.pt", "step_2.pt"]
+    files = Checkpointer(out / "checkpoints").all()
+    assert [p.name for p in files] == ["step_0.pt", "step_1.pt", "step_2.pt"]
+    initial = load_maml_checkpoint(files[0])
+    assert initial["iteration"] == 0 and initial["env_steps"] == 0  # the ablation's "before meta-training" point
     state = load_maml_checkpoint(out)
     assert state["meta"]["proposal"] == proposal and state["iteration"] == 2
     policy, inner_lr = load_maml_policy(out)
@@ -58,7 +61,7 @@ def test_resume_continues_from_the_latest_checkpoint(tmp_path):
     assert result["iteration"] == 2
     second = load_maml_checkpoint(tmp_path)
     assert second["env_steps"] == 2 * first["env_steps"]
-    assert len(Checkpointer(tmp_path / "checkpoints").all()) == 2
+    assert len(Checkpointer(tmp_path / "checkpoints").all()) == 3  # steps 0, 1, 2: resuming writes no second step_0
     with pytest.raises(ValueError, match="differs from the checkpoint"):
         train(_cfg(tmp_path, "iterations=3", "resume=true", "maml.inner_lr=0.2"))
 
