@@ -1,27 +1,21 @@
 """recipes/maml.py smoke tests: two meta-iterations per proposal on tiny settings, kept checkpoints, resume."""
-import sys
-from pathlib import Path
-
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
+from script_loading import compose_config, load_script
 
 from umrl.diayn_checkpoint import FORMAT as DIAYN_FORMAT
 from umrl.maml_checkpoint import load_maml_checkpoint, load_maml_policy
 from umrl.modules.discriminator import make_discriminator
 from umrl.runtime import Checkpointer
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "recipes"))
-from maml import train
+train = load_script("recipes/maml.py").train
 
 TINY = ["env.horizon=10", "meta_batch_size=2", "trajectories_per_task=3", "policy.hidden=[16]",
         "logger.backend=none", "progress=false", "checkpoint.every=1", "trpo.cg_iters=3", "num_skills=4"]
 
 
 def _cfg(tmp_path, *overrides):
-    with initialize_config_dir(config_dir=str(REPO / "recipes" / "config"), version_base="1.3"):
-        return compose("maml", overrides=[*TINY, f"output_dir={tmp_path}", *overrides])
+    return compose_config("recipes/config", "maml", [*TINY, f"output_dir={tmp_path}", *overrides])
 
 
 def _tiny_diayn_checkpoint(directory):

@@ -1,33 +1,26 @@
 """Smoke tests of recipes/vime.py: a tiny run completes, checkpoints, resumes; the policy loader; coverage."""
-import importlib.util
-from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
+from script_loading import compose_config, load_script
 from tensordict import TensorDict
 from torchrl.modules import ProbabilisticActor
 
 from umrl.objectives.vime import load_vime_checkpoint, load_vime_dynamics, load_vime_policy
 
-ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
 
 def load_recipe():
-    spec = importlib.util.spec_from_file_location("vime_recipe", ROOT / "recipes" / "vime.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("recipes/vime.py")
 
 
 def tiny_config(output_dir, *overrides):
-    with initialize_config_dir(config_dir=str(ROOT / "recipes" / "config"), version_base="1.3"):
-        return compose("vime", overrides=[
+    return compose_config("recipes/config", "vime", [
             "logger.backend=none", "progress=false", f"output_dir={output_dir}", "iterations=2",
             "env.num_envs=4", "env.horizon=10", "policy.hidden=[16,16]", "dynamics.updates_per_iteration=3",
             "dynamics.batch_size=8", "dynamics.holdout_fraction=0.25", "checkpoint.every=1", *overrides,
-        ])
+    ])
 
 
 def test_run_checkpoint_resume_and_load(tmp_path):

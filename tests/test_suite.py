@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
+from script_loading import compose_config
 
 from umrl.evaluation import read_rows, write_rows
 
@@ -22,8 +22,7 @@ TINY = ["num_tasks=2", "protocol.num_steps=1", "protocol.num_trajectories=2", "p
 
 
 def _cfg(tmp_path, *overrides):
-    with initialize_config_dir(config_dir=str(REPO / "benchmarks" / "config"), version_base="1.3"):
-        return compose("suite", overrides=[f"output_dir={tmp_path}", *TINY, *overrides])
+    return compose_config("benchmarks/config", "suite", [f"output_dir={tmp_path}", *TINY, *overrides])
 
 
 def test_plan_dependencies_and_shared_pretraining(tmp_path):
