@@ -23,6 +23,7 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 from torch import nn
+from torch.distributions import Normal, kl_divergence
 from torch.func import functional_call, grad, vmap
 from torchrl.envs.transforms.rnd import RunningMeanStd
 
@@ -40,9 +41,7 @@ def gaussian_kl(
     mu_q: torch.Tensor, std_q: torch.Tensor, mu_p: torch.Tensor | float, std_p: torch.Tensor | float
 ) -> torch.Tensor:
     """Closed-form ``KL(N(mu_q, std_q^2) || N(mu_p, std_p^2))`` summed over all elements (a scalar)."""
-    std_p = torch.as_tensor(std_p, dtype=std_q.dtype)
-    var_ratio = (std_q / std_p) ** 2
-    return 0.5 * (var_ratio + ((mu_q - mu_p) / std_p) ** 2 - 1.0 - torch.log(var_ratio)).sum()
+    return kl_divergence(Normal(mu_q, std_q, validate_args=False), Normal(mu_p, std_p, validate_args=False)).sum()
 
 
 class BayesianLinear(nn.Module):

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from torch.distributions import Normal, kl_divergence
 from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import LossModule
 
@@ -34,8 +35,8 @@ __all__ = ["MAMLLoss", "gaussian_kl"]
 
 def gaussian_kl(loc0: torch.Tensor, scale0: torch.Tensor, loc1: torch.Tensor, scale1: torch.Tensor) -> torch.Tensor:
     """``KL(N(loc0, scale0²) ‖ N(loc1, scale1²))`` for diagonal Gaussians, summed over the last dim."""
-    var_ratio = (scale0 / scale1).pow(2)
-    return 0.5 * (var_ratio + ((loc0 - loc1) / scale1).pow(2) - 1 - var_ratio.log()).sum(-1)
+    p, q = Normal(loc0, scale0, validate_args=False), Normal(loc1, scale1, validate_args=False)
+    return kl_divergence(p, q).sum(-1)
 
 
 def _masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
