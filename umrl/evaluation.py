@@ -126,8 +126,7 @@ class TaskAdapter:
                 f"env batch {tuple(env.batch_size)} != {num_tasks} tasks x {config.num_trajectories} trajectories."
             )
         self.policy, self.env, self.num_tasks, self.config = policy, env, num_tasks, config
-        # A loop over tasks for the loss: each task's batch is N x H transitions (on CPU a loop beats vmap there).
-        self.functional = FunctionalPolicy(policy, task_loop=True)
+        self.functional = FunctionalPolicy(policy)  # loop or vmap over tasks, by per-task batch size
         base = TensorDict.from_module(policy).detach()
         self.params = base.expand(num_tasks).clone()
         leaves = [p.requires_grad_() for p in self.params.values(True, True) if p.is_floating_point()]
@@ -173,13 +172,11 @@ def select_skills(policy: TensorDictModuleBase, env_name: str, tasks: torch.Tens
         ``(best [T] long, returns [T, K])``: the skill with the highest mean task return per task and all means.
     """
     num_tasks = tasks.shape[0]
-    per_task = num_skills * num_trajectories
-    skills = torch.arange(num_skills).repeat_interleave(num_trajectories).repeat(num_tasks)
-    env = make_task_env(env_name, tasks.repeat_interleave(per_task, 0), seed=seed, horizon=horizon)
-    skill_transform = SkillTransform(num_skills)
-    env.append_transform(skill_transform)
-    skill_transform.pin(skills)
+    # one (task, skill) pair per "task" of the eval env: pair t * K + k solves tasks[t] with skill k
+    env = make_eval_env(env_name, tasks.repeat_interleave(num_skills, 0), num_trajectories, seed=seed, horizon=horizon,
+                        skills=torch.arange(num_skills).repeat(num_tasks), num_skills=num_skills)
     batch = collect(env, policy, num_tasks=num_tasks * num_skills, horizon=horizon)
+    env.close()
     returns = episode_returns(batch).mean(-1).reshape(num_tasks, num_skills)
     return returns.argmax(-1), returns
 
