@@ -5,12 +5,10 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from umrl.diayn_checkpoint import FORMAT as DIAYN_FORMAT
 from umrl.modules.discriminator import make_discriminator
 from umrl.modules.policy import make_gaussian_policy
 from umrl.proposals import make_proposal
 from umrl.rollout import collect
-from umrl.runtime import Checkpointer
 
 T, N, H = 3, 2, 5
 
@@ -53,21 +51,16 @@ def test_random_proposal_uses_a_seeded_frozen_discriminator_one_skill_per_task()
     assert full.num_tasks == 6 and full.resample().tolist() == list(range(6))
 
 
-def test_diayn_proposal_reads_the_discriminator_from_a_checkpoint(tmp_path):
-    discriminator = make_discriminator(2, 4, hidden=(16,), seed=1)
-    meta = {"env": "point_nav", "obs_dim": 2, "act_dim": 2, "num_skills": 4, "hidden": [16],
-            "discriminator_hidden": [16], "discriminator_observation_key": ["next", "observation"]}
-    Checkpointer(tmp_path / "checkpoints").save(
-        {"format": DIAYN_FORMAT, "meta": meta, "discriminator": discriminator.state_dict()}, 10
-    )
-    proposal = make_proposal("diayn", "point_nav", trajectories_per_task=N, horizon=H, diayn_checkpoint=tmp_path)
+def test_diayn_proposal_reads_the_discriminator_from_a_checkpoint(tiny_diayn_checkpoint):
+    checkpoint, discriminator = tiny_diayn_checkpoint
+    proposal = make_proposal("diayn", "point_nav", trajectories_per_task=N, horizon=H, diayn_checkpoint=checkpoint)
     assert proposal.num_tasks == 4 and proposal.num_skills == 4
     proposal.resample()
     td = _rollout(proposal)
     assert td["next", "reward"].shape == (4, N, H, 1)
     torch.testing.assert_close(td["next", "reward"], _discriminator_reward(discriminator, td, 4))
     with pytest.raises(ValueError, match="exceeds"):
-        make_proposal("diayn", "point_nav", num_tasks=5, diayn_checkpoint=tmp_path)
+        make_proposal("diayn", "point_nav", num_tasks=5, diayn_checkpoint=checkpoint)
 
 
 def test_proposal_errors_say_what_to_fix(tmp_path):

@@ -3,9 +3,7 @@ import pytest
 import torch
 from script_loading import compose_config, load_script
 
-from umrl.diayn_checkpoint import FORMAT as DIAYN_FORMAT
 from umrl.maml_checkpoint import load_maml_checkpoint, load_maml_policy
-from umrl.modules.discriminator import make_discriminator
 from umrl.runtime import Checkpointer
 
 train = load_script("recipes/maml.py").train
@@ -18,19 +16,9 @@ def _cfg(tmp_path, *overrides):
     return compose_config("recipes/config", "maml", [*TINY, f"output_dir={tmp_path}", *overrides])
 
 
-def _tiny_diayn_checkpoint(directory):
-    discriminator = make_discriminator(2, 4, hidden=(16,), seed=0)
-    meta = {"env": "point_nav", "obs_dim": 2, "act_dim": 2, "num_skills": 4, "hidden": [16],
-            "discriminator_hidden": [16], "discriminator_observation_key": ["next", "observation"]}
-    Checkpointer(directory / "checkpoints").save(
-        {"format": DIAYN_FORMAT, "meta": meta, "discriminator": discriminator.state_dict()}, 1
-    )
-    return directory
-
-
 @pytest.mark.parametrize("proposal", ["oracle", "random", "diayn"])
-def test_two_iterations_per_proposal(tmp_path, proposal):
-    diayn = _tiny_diayn_checkpoint(tmp_path / "diayn")
+def test_two_iterations_per_proposal(tmp_path, proposal, tiny_diayn_checkpoint):
+    diayn, _ = tiny_diayn_checkpoint
     out = tmp_path / "maml"
     result = train(_cfg(out, f"proposal={proposal}", "iterations=2", f"diayn_checkpoint={diayn}"))
     assert result["iteration"] == 2
