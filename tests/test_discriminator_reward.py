@@ -93,3 +93,22 @@ def test_seeded_random_discriminator_is_reproducible_and_keeps_global_rng():
 def test_bad_inputs(call, match):
     with pytest.raises(ValueError, match=match):
         call(make_discriminator(2, K, hidden=(8,)))
+
+
+def test_default_init_is_the_reference_xavier_uniform_with_zero_biases():
+    """DIAYN's reference MLPs: Glorot-uniform weights U(+-sqrt(6 / (fan_in + fan_out))), zero biases."""
+    layers = [m for m in make_discriminator(2, 50, seed=0).modules() if isinstance(m, torch.nn.Linear)]
+    assert [tuple(m.weight.shape) for m in layers] == [(300, 2), (300, 300), (50, 300)]
+    for layer in layers:
+        fan_out, fan_in = layer.weight.shape
+        bound = math.sqrt(6.0 / (fan_in + fan_out))
+        w = layer.weight.detach()
+        assert w.abs().max() <= bound
+        assert w.abs().max() > 0.95 * bound  # fills its interval (U(-b, b) has std b / sqrt(3))
+        assert w.std().item() == pytest.approx(bound / math.sqrt(3), rel=0.1)
+        assert torch.count_nonzero(layer.bias) == 0
+    torch_layers = [m for m in make_discriminator(2, 50, seed=0, init="torch").modules()
+                    if isinstance(m, torch.nn.Linear)]
+    assert all(torch.count_nonzero(m.bias) > 0 for m in torch_layers)  # the other choice really differs
+    with pytest.raises(ValueError, match="init must be one of .*'kaiming'"):
+        make_discriminator(2, 50, init="kaiming")

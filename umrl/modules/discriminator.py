@@ -8,7 +8,13 @@ import torch
 from tensordict.nn import TensorDictModule
 from torchrl.modules import MLP
 
-__all__ = ["make_discriminator"]
+__all__ = ["DISCRIMINATOR_INITS", "make_discriminator"]
+
+#: ``"xavier"``: Glorot-uniform weights, zero biases, as the DIAYN reference code initialises every MLP
+#: (haarnoja/sac ``sac/misc/mlp.py``: ``tf.contrib.layers.xavier_initializer()`` weights,
+#: ``tf.constant_initializer(0.)`` biases). ``"torch"``: ``torch.nn.Linear``'s default (Kaiming-uniform weights with
+#: a = sqrt(5), i.e. U(+-1/sqrt(fan_in)), and U(+-1/sqrt(fan_in)) biases).
+DISCRIMINATOR_INITS = ("xavier", "torch")
 
 
 def make_discriminator(
@@ -17,6 +23,7 @@ def make_discriminator(
     *,
     hidden: Sequence[int] = (300, 300),
     seed: int | None = None,
+    init: str = "xavier",
     in_key="observation",
     out_key="skill_logits",
 ) -> TensorDictModule:
@@ -30,6 +37,9 @@ def make_discriminator(
         hidden (sequence of int): hidden layer widths. Defaults to ``(300, 300)`` (PROTOCOL.md).
         seed (int, optional): if given, the weights are initialised from ``torch.manual_seed(seed)`` inside a forked
             RNG (the global RNG is untouched), so a frozen random discriminator (UML-random) is reproducible.
+        init (str): weight initialisation, one of :data:`DISCRIMINATOR_INITS`. Defaults to ``"xavier"`` (the DIAYN
+            reference code's: Glorot-uniform weights U(+-sqrt(6 / (fan_in + fan_out))), zero biases); ``"torch"``
+            keeps ``torch.nn.Linear``'s default.
         in_key / out_key: tensordict keys. Defaults to ``"observation"`` -> ``"skill_logits"`` [*B, K].
 
     Returns:
@@ -45,6 +55,8 @@ def make_discriminator(
         raise ValueError(f"obs_dim must be >= 1, got {obs_dim}.")
     if num_skills < 2:
         raise ValueError(f"num_skills must be >= 2, got {num_skills}.")
+    if init not in DISCRIMINATOR_INITS:
+        raise ValueError(f"init must be one of {DISCRIMINATOR_INITS}, got {init!r}.")
     # Seeded: draw the weights from a forked RNG; unseeded: consume the global RNG as any torch layer does.
     with torch.random.fork_rng(devices=[]) if seed is not None else contextlib.nullcontext():
         if seed is not None:
@@ -55,4 +67,9 @@ def make_discriminator(
             num_cells=list(hidden),
             activation_class=torch.nn.ReLU,
         )
+        if init == "xavier":
+            for layer in net.modules():
+                if isinstance(layer, torch.nn.Linear):
+                    torch.nn.init.xavier_uniform_(layer.weight)
+                    torch.nn.init.zeros_(layer.bias)
     return TensorDictModule(net, in_keys=[in_key], out_keys=[out_key])
