@@ -17,8 +17,8 @@ for half_cheetah's velocities), the same for a uniformly random policy under ``e
 ``time/`` env steps/s, updates/s, elapsed seconds. The coverage figure goes to ``<output_dir>/figures/``.
 
 Checkpoints: ``<output_dir>/checkpoints/step_<frames>.pt`` every ``checkpoint.every`` frames and at the end, format
-``umrl.diayn.v1`` documented in :mod:`umrl.diayn_checkpoint`; load the results with
-``umrl.diayn_checkpoint.load_discriminator(path)`` -> (D, num_skills, obs_dim) and ``load_skill_policy(path)`` ->
+``umrl.diayn.v1`` documented in :mod:`umrl.checkpoints.diayn`; load the results with
+``umrl.checkpoints.load_discriminator(path)`` -> (D, num_skills, obs_dim) and ``load_skill_policy(path)`` ->
 (actor, num_skills, obs_dim). ``resume=true`` restores networks, optimisers, counters and the RNG; the replay buffer
 is not saved: it refills with the restored policy's data (``collector.init_random_frames`` frames) before updates
 resume.
@@ -37,7 +37,7 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import RewardSum
 from torchrl.objectives import SoftUpdate
 
-from umrl.diayn_checkpoint import FORMAT
+from umrl.checkpoints import DIAYN_FORMAT, save_diayn_checkpoint
 from umrl.envs import make_env
 from umrl.envs.tasks import get_task_family
 from umrl.modules.discriminator import make_discriminator
@@ -50,7 +50,6 @@ from umrl.runtime import (
     log_metrics,
     make_logger,
     seed_everything,
-    to_container,
 )
 from umrl.skill_coverage import coverage_metrics, evaluate_skills, plot_coverage
 from umrl.transforms.discriminator_reward import DiscriminatorReward
@@ -116,13 +115,17 @@ def train(cfg: DictConfig) -> dict:
     seed_everything(cfg.seed)
     out_dir = Path(cfg.output_dir)
     checkpointer = Checkpointer(out_dir / "checkpoints", keep_all=cfg.checkpoint.keep_all)
-    state = checkpointer.load() if cfg.resume else None  # FileNotFoundError says what is missing
 
     # --- networks, loss, optimisers -------------------------------------------------------------------
     probe = make_env(cfg.env.name, 1, horizon=cfg.env.horizon, backend=cfg.env.backend)
     obs_dim, act_dim = probe.observation_spec["observation"].shape[-1], probe.action_spec.shape[-1]
     probe.close()
     hidden, disc_hidden = list(cfg.network.hidden), list(cfg.network.discriminator_hidden)
+    meta = {"env": cfg.env.name, "obs_dim": obs_dim, "act_dim": act_dim, "num_skills": num_skills,
+            "hidden": hidden, "discriminator_hidden": disc_hidden,
+            "discriminator_observation_key": ["next", "observation"]}
+    # FileNotFoundError says what is missing; ValueError if the checkpoint's format or meta differ
+    state = DIAYN_FORMAT.load_for_resume(checkpointer, meta) if cfg.resume else None
     actor = make_skill_actor(obs_dim, num_skills, act_dim, hidden=hidden)
     discriminator = make_discriminator(obs_dim, num_skills, hidden=disc_hidden)
     loss = DIAYNLoss(actor, make_skill_qvalue(obs_dim, num_skills, act_dim, hidden=hidden), discriminator,
@@ -145,16 +148,10 @@ def train(cfg: DictConfig) -> dict:
             optimizer.load_state_dict(state["optimizers"][name])
         counters.update(state["counters"])
         torch.set_rng_state(state["rng"])
-    meta = {"env": cfg.env.name, "obs_dim": obs_dim, "act_dim": act_dim, "num_skills": num_skills,
-            "hidden": hidden, "discriminator_hidden": disc_hidden,
-            "discriminator_observation_key": ["next", "observation"]}
 
     def save() -> Path:
-        return checkpointer.save({
-            "format": FORMAT, "meta": meta, "actor": actor.state_dict(), "discriminator": discriminator.state_dict(),
-            "loss": loss.state_dict(), "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
-            "counters": dict(counters), "rng": torch.get_rng_state(), "config": to_container(cfg),
-        }, counters["frames"], cfg)
+        return save_diayn_checkpoint(checkpointer, meta=meta, actor=actor, discriminator=discriminator, loss=loss,
+                                     optimizers=optimizers, counters=counters, config=cfg)
 
     # --- data -----------------------------------------------------------------------------------------
     env = make_skill_env(cfg, cfg.env.num_envs, num_skills, cfg.seed, discriminator)

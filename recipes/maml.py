@@ -18,7 +18,7 @@ trajectories), reward_mean/std/min/max (task rewards of the pre-update batch), k
 improvement, backtracks, accepted, grad_norm, step_norm; ``time/`` collect_s (rollouts + advantages),
 learn_s (inner adaptation for the post-update policy + TRPO meta-step), inner_s (that adaptation alone, built
 with the graph the meta-step differentiates through),
-env_steps_per_s (pre + post env steps per second of collect_s), env_steps. Checkpoints: ``<output_dir>/checkpoints/step_<iteration>.pt`` (format in :mod:`umrl.maml_checkpoint`).
+env_steps_per_s (pre + post env steps per second of collect_s), env_steps. Checkpoints: ``<output_dir>/checkpoints/step_<iteration>.pt`` (format in :mod:`umrl.checkpoints.maml`).
 """
 from __future__ import annotations
 
@@ -30,14 +30,14 @@ import torch
 import tqdm
 from omegaconf import DictConfig
 
-from umrl.maml_checkpoint import FORMAT
+from umrl.checkpoints import MAML_FORMAT, save_maml_checkpoint
 from umrl.modules.policy import make_gaussian_policy
 from umrl.objectives.maml import MAMLLoss
 from umrl.objectives.policy_gradient import compute_advantages, episode_returns
 from umrl.optim.trpo import TRPOStep
 from umrl.proposals import make_proposal
 from umrl.rollout import collect
-from umrl.runtime import Checkpointer, check_finite, log_metrics, make_logger, seed_everything, to_container
+from umrl.runtime import Checkpointer, check_finite, log_metrics, make_logger, seed_everything
 
 HVP_MODES = ("gauss_newton", "exact")
 
@@ -120,8 +120,6 @@ def train(cfg: DictConfig) -> dict:
     generator = seed_everything(cfg.seed)
     out_dir = Path(cfg.output_dir)
     checkpointer = Checkpointer(out_dir / "checkpoints", keep_all=cfg.checkpoint.keep_all)
-    state = checkpointer.load() if cfg.resume else None  # FileNotFoundError says what is missing
-
     if cfg.trpo.hvp not in HVP_MODES:
         raise ValueError(f"trpo.hvp must be one of {list(HVP_MODES)}, got {cfg.trpo.hvp!r}.")
     proposal, policy, loss, trpo = build(cfg)
@@ -135,23 +133,17 @@ def train(cfg: DictConfig) -> dict:
         "horizon": cfg.env.horizon, "num_skills": proposal.num_skills,
     }
     iteration, env_steps = 0, 0
+    # FileNotFoundError says what is missing; ValueError if the checkpoint's format or meta differ
+    state = MAML_FORMAT.load_for_resume(checkpointer, meta) if cfg.resume else None
     if state is not None:
-        if state.get("format") != FORMAT:
-            raise ValueError(f"{checkpointer.latest()} is not a MAML checkpoint (format {state.get('format')!r}).")
-        mismatched = {k: (state["meta"].get(k), v) for k, v in meta.items() if state["meta"].get(k) != v}
-        if mismatched:
-            raise ValueError(f"resume=true with a config that differs from the checkpoint's (saved, now): {mismatched}.")
         policy.load_state_dict(state["policy"])
         iteration, env_steps = state["iteration"], state["env_steps"]
         torch.set_rng_state(state["rng"])
         generator.set_state(state["task_rng"])
 
     def save():
-        return checkpointer.save({
-            "format": FORMAT, "meta": meta, "policy": policy.state_dict(), "iteration": iteration,
-            "env_steps": env_steps, "rng": torch.get_rng_state(), "task_rng": generator.get_state(),
-            "config": to_container(cfg),
-        }, iteration, cfg)
+        return save_maml_checkpoint(checkpointer, meta=meta, policy=policy, iteration=iteration,
+                                    env_steps=env_steps, task_rng=generator, config=cfg)
 
     if state is None:
         save()  # iteration 0: the initialisation before meta-training, the ablation's first point

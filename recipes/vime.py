@@ -19,7 +19,7 @@ half_cheetah), the untrained policy's under ``coverage/initial_*`` and everythin
 ``coverage/cumulative_*``; ``time/`` env steps/s and seconds per phase.
 
 Checkpoints: ``<output_dir>/checkpoints/step_<iteration>.pt``, format ``umrl.vime.v1`` (documented in
-:mod:`umrl.objectives.vime`); ``umrl.objectives.vime.load_vime_policy(path)`` returns the policy to fine-tune.
+:mod:`umrl.checkpoints.vime`); ``umrl.checkpoints.load_vime_policy(path)`` returns the policy to fine-tune.
 ``resume=true`` restores the policy, the dynamics model and its optimiser, the bonus normaliser, the transitions,
 the counters and the RNG.
 """
@@ -35,14 +35,15 @@ import tqdm
 from omegaconf import DictConfig
 from tensordict import TensorDict, TensorDictBase
 
+from umrl.checkpoints import VIME_FORMAT, save_vime_checkpoint
 from umrl.envs import make_env
 from umrl.modules.bnn import BayesianDynamics
 from umrl.modules.policy import make_gaussian_policy
 from umrl.objectives.policy_gradient import compute_advantages
-from umrl.objectives.vime import FORMAT, VIMELoss
+from umrl.objectives.vime import VIMELoss
 from umrl.optim.trpo import TRPOStep
 from umrl.rollout import FunctionalPolicy, collect
-from umrl.runtime import Checkpointer, check_finite, log_metrics, make_logger, seed_everything, to_container
+from umrl.runtime import Checkpointer, check_finite, log_metrics, make_logger, seed_everything
 from umrl.transforms.vime_bonus import VIMEBonus
 
 COVERAGE_KEYS = {"point_nav": "position", "ant": "xy_position", "half_cheetah": "x_velocity"}
@@ -181,7 +182,6 @@ def train(cfg: DictConfig) -> dict:
     seed_everything(cfg.seed)
     out_dir = Path(cfg.output_dir)
     checkpointer = Checkpointer(out_dir / "checkpoints", keep_all=cfg.checkpoint.keep_all)
-    state = checkpointer.load() if cfg.resume else None  # FileNotFoundError says what is missing
 
     env = make_env(cfg.env.name, cfg.env.num_envs, seed=cfg.seed, device=cfg.device, horizon=cfg.env.horizon,
                    backend=cfg.env.backend)
@@ -198,9 +198,14 @@ def train(cfg: DictConfig) -> dict:
     t = cfg.trpo
     trpo = TRPOStep(params, max_kl=t.max_kl, damping=t.damping, cg_iters=t.cg_iters,
                     backtrack_ratio=t.backtrack_ratio, max_backtracks=t.max_backtracks)
+    meta = {"env": cfg.env.name, "obs_dim": obs_dim, "act_dim": act_dim, "policy_hidden": list(cfg.policy.hidden),
+            "policy_init_std": cfg.policy.init_std, "dynamics_hidden": list(dyn.hidden),
+            "prior_std": dyn.prior_std, "likelihood_std": dyn.likelihood_std}
     counters = {"iteration": 0, "frames": 0}
     replay = holdout = first_batch = seen = None
     initial_coverage: dict[str, float] = {}
+    # FileNotFoundError says what is missing; ValueError if the checkpoint's format or meta differ
+    state = VIME_FORMAT.load_for_resume(checkpointer, meta) if cfg.resume else None
     if state is not None:
         policy.load_state_dict(state["policy"])
         dynamics.load_state_dict(state["dynamics"])
@@ -210,20 +215,14 @@ def train(cfg: DictConfig) -> dict:
         counters.update(state["counters"])
         initial_coverage = state["initial_coverage"]
         torch.set_rng_state(state["rng"])
-    meta = {"env": cfg.env.name, "obs_dim": obs_dim, "act_dim": act_dim, "policy_hidden": list(cfg.policy.hidden),
-            "policy_init_std": cfg.policy.init_std, "dynamics_hidden": list(dyn.hidden),
-            "prior_std": dyn.prior_std, "likelihood_std": dyn.likelihood_std}
 
     def save() -> Path:
         keep = cfg.checkpoint.save_replay
-        return checkpointer.save({
-            "format": FORMAT, "meta": meta, "policy": policy.state_dict(), "dynamics": dynamics.state_dict(),
-            "dynamics_optimizer": optimizer.state_dict(), "median_history": bonus.median_history.clone(),
-            "replay": replay if keep else None, "holdout": holdout if keep else None,
-            "counters": dict(counters), "initial_coverage": initial_coverage, "visited": seen,
-            "rng": torch.get_rng_state(),
-            "config": to_container(cfg),
-        }, counters["iteration"], cfg)
+        return save_vime_checkpoint(
+            checkpointer, meta=meta, policy=policy, dynamics=dynamics, dynamics_optimizer=optimizer,
+            median_history=bonus.median_history, replay=replay if keep else None,
+            holdout=holdout if keep else None, counters=counters, initial_coverage=initial_coverage, visited=seen,
+            config=cfg)
 
     if counters["iteration"] >= cfg.iterations:
         raise ValueError(f"nothing to do: the checkpoint is at iteration {counters['iteration']} >= "

@@ -16,7 +16,7 @@ torch.set_num_threads(1)
 def tiny_diayn_checkpoint(tmp_path):
     """A minimal point_nav DIAYN checkpoint (4 skills, one 16-unit discriminator layer) in ``tmp_path / "diayn"``;
     returns ``(directory, discriminator)``."""
-    from umrl.diayn_checkpoint import FORMAT
+    from umrl.checkpoints import DIAYN_FORMAT
     from umrl.modules.discriminator import make_discriminator
     from umrl.runtime import Checkpointer
 
@@ -24,7 +24,5 @@ def tiny_diayn_checkpoint(tmp_path):
     discriminator = make_discriminator(2, 4, hidden=(16,), seed=0)
     meta = {"env": "point_nav", "obs_dim": 2, "act_dim": 2, "num_skills": 4, "hidden": [16],
             "discriminator_hidden": [16], "discriminator_observation_key": ["next", "observation"]}
-    Checkpointer(directory / "checkpoints").save(
-        {"format": FORMAT, "meta": meta, "discriminator": discriminator.state_dict()}, 1
-    )
+    DIAYN_FORMAT.save(Checkpointer(directory / "checkpoints"), 1, meta, discriminator=discriminator.state_dict())
     return directory, discriminator

@@ -7,7 +7,7 @@ import torch
 from script_loading import REPO, compose_config, load_script
 from tensordict import TensorDict
 
-from umrl.diayn_checkpoint import load_diayn_checkpoint, load_discriminator, load_skill_policy
+from umrl.checkpoints import load_diayn_checkpoint, load_discriminator, load_skill_policy
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 

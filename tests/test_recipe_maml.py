@@ -3,7 +3,7 @@ import pytest
 import torch
 from script_loading import compose_config, load_script
 
-from umrl.maml_checkpoint import load_maml_checkpoint, load_maml_policy
+from umrl.checkpoints import load_maml_checkpoint, load_maml_policy
 from umrl.runtime import Checkpointer
 
 train = load_script("recipes/maml.py").train

@@ -6,7 +6,7 @@ from script_loading import compose_config, load_script
 from tensordict import TensorDict
 from torchrl.modules import ProbabilisticActor
 
-from umrl.objectives.vime import load_vime_checkpoint, load_vime_dynamics, load_vime_policy
+from umrl.checkpoints import load_vime_checkpoint, load_vime_dynamics, load_vime_policy
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 

@@ -6,7 +6,7 @@ A proposal owns a batched env of ``T × N`` copies (task-major: copy ``t * N + n
 * ``oracle`` — the hand-designed task family (:func:`umrl.envs.tasks.get_task_family`, rewards by
   :class:`~umrl.transforms.task_reward.TaskReward`); fresh tasks every meta-iteration.
 * ``diayn`` — UML-DIAYN: the task is a DIAYN skill z with reward ``log D(z|s') − log p(z)`` from a trained
-  discriminator (``umrl.diayn_checkpoint.load_discriminator``); the meta-batch is every skill (or a random subset
+  discriminator (``umrl.checkpoints.load_discriminator``); the meta-batch is every skill (or a random subset
   of ``num_tasks`` skills each meta-iteration if fewer tasks are asked for).
 * ``random`` — UML-random: the same reward from a seeded, randomly initialised, frozen discriminator.
 
@@ -136,7 +136,7 @@ def make_proposal(
     if name == "diayn":
         if diayn_checkpoint is None:
             raise ValueError("proposal=diayn needs diayn_checkpoint=<DIAYN run dir or step_*.pt file>.")
-        from umrl.diayn_checkpoint import load_discriminator
+        from umrl.checkpoints import load_discriminator
 
         discriminator, num_skills, _ = load_discriminator(diayn_checkpoint)
     else:

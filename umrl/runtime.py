@@ -2,7 +2,8 @@
 
 Loggers are TorchRL's (:func:`torchrl.record.loggers.get_logger`): ``wandb`` in offline mode by default (runs land in
 ``./wandb/offline-run-*``; publish them later with ``wandb sync``), ``csv`` as a dependency-free alternative, ``none``
-for tests. Checkpoints are ``torch.save`` files written atomically, with the resolved config beside them.
+for tests. Checkpoints are ``torch.save`` files written atomically, with the resolved config beside them (their
+formats, saving and checked loading live in :mod:`umrl.checkpoints`).
 """
 from __future__ import annotations
 
@@ -161,13 +162,3 @@ def resolve_checkpoint(path: str | os.PathLike) -> Path:
             return latest
     raise FileNotFoundError(f"no checkpoint file at {path} (looked for step_*.pt in it and in {path / 'checkpoints'}).")
 
-
-def load_checkpoint(path: str | os.PathLike, *, format: str, what: str) -> dict:
-    """Load the checkpoint at ``path`` (a ``step_*.pt`` file, a ``checkpoints/`` folder or a run's output_dir: the
-    latest) and check that it carries ``state["format"] == format``; ``what`` names the recipe in the error."""
-    file = resolve_checkpoint(path)
-    state = torch.load(file, map_location="cpu", weights_only=False)
-    if not isinstance(state, dict) or state.get("format") != format:
-        found = state.get("format") if isinstance(state, dict) else type(state).__name__
-        raise ValueError(f"{file} is not a {what} checkpoint (format {found!r}, expected {format!r}).")
-    return state

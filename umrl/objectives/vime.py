@@ -1,42 +1,19 @@
-"""VIME's dynamics-model objective, and the reader of the checkpoints written by ``recipes/vime.py``.
-
-:class:`VIMELoss`: the negative ELBO of a Bayesian dynamics network on a buffer of transitions.
-
-Checkpoint format ``"umrl.vime.v1"``: a ``torch.save``'d dict, files ``<output_dir>/checkpoints/step_<iteration>.pt``
-(the final one of a run is the latest), with
-
-- ``"format"``: ``"umrl.vime.v1"``;
-- ``"meta"``: ``env`` (name), ``obs_dim``, ``act_dim``, ``policy_hidden``, ``policy_init_std``, ``dynamics_hidden``,
-  ``prior_std``, ``likelihood_std``;
-- ``"policy"``: state dict of :func:`umrl.modules.policy.make_gaussian_policy` ``(obs_dim, act_dim,
-  hidden=policy_hidden, init_std=policy_init_std)`` (reads ``"observation"``, writes ``"loc"``, ``"scale"``,
-  ``"action"``, ``"action_log_prob"``);
-- ``"dynamics"``: state dict of :class:`~umrl.modules.bnn.BayesianDynamics` (posterior and running statistics);
-- ``"dynamics_optimizer"``: Adam state; ``"median_history"``: the bonus normaliser's recent medians;
-- ``"replay"`` / ``"holdout"``: the dynamics model's transitions (TensorDicts) or ``None``;
-- ``"counters"``: ``iteration``, ``frames``; ``"initial_coverage"``: coverage of the untrained policy; ``"visited"``:
-  the cells (or velocity range) visited so far;
-  ``"rng"``: torch RNG state; ``"config"``: the resolved recipe config (also beside it as ``config.yaml``).
+"""VIME's dynamics-model objective: :class:`VIMELoss`, the negative ELBO of a Bayesian dynamics network on a buffer
+of transitions. The checkpoints of ``recipes/vime.py`` are read by :mod:`umrl.checkpoints.vime`.
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from typing import ClassVar
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
-from torchrl.modules import ProbabilisticActor
 from torchrl.objectives.common import LossModule
 
 from umrl.modules.bnn import BayesianDynamics
-from umrl.modules.policy import make_gaussian_policy
-from umrl.runtime import load_checkpoint
 
-FORMAT = "umrl.vime.v1"
-
-__all__ = ["FORMAT", "VIMELoss", "load_vime_checkpoint", "load_vime_dynamics", "load_vime_policy"]
+__all__ = ["VIMELoss"]
 
 
 class VIMELoss(LossModule):
@@ -134,30 +111,3 @@ class VIMELoss(LossModule):
             batch_size=[],
         )
 
-
-def load_vime_checkpoint(path: str | os.PathLike) -> dict:
-    """Load a VIME checkpoint: a ``step_*.pt`` file, a ``checkpoints/`` folder or a run's output_dir (latest)."""
-    return load_checkpoint(path, format=FORMAT, what="VIME")
-
-
-def load_vime_policy(path: str | os.PathLike) -> ProbabilisticActor:
-    """The VIME-pre-trained 2x300 Gaussian policy (trainable, for fine-tuning; the VIME-init baseline).
-
-    Reads ``"observation"``, writes ``"loc"``, ``"scale"``, ``"action"`` and ``"action_log_prob"``, exactly like
-    :func:`umrl.modules.policy.make_gaussian_policy`.
-    """
-    state = load_vime_checkpoint(path)
-    meta = state["meta"]
-    policy = make_gaussian_policy(meta["obs_dim"], meta["act_dim"], hidden=meta["policy_hidden"],
-                                  init_std=meta["policy_init_std"])
-    policy.load_state_dict(state["policy"])
-    return policy
-
-
-def load_vime_dynamics(path: str | os.PathLike) -> BayesianDynamics:
-    """The trained Bayesian dynamics model (with its running statistics), e.g. to score transitions."""
-    meta = (state := load_vime_checkpoint(path))["meta"]
-    dynamics = BayesianDynamics(meta["obs_dim"], meta["act_dim"], hidden=meta["dynamics_hidden"],
-                                prior_std=meta["prior_std"], likelihood_std=meta["likelihood_std"])
-    dynamics.load_state_dict(state["dynamics"])
-    return dynamics

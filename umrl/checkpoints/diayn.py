@@ -1,4 +1,4 @@
-"""Reading the checkpoints written by ``recipes/diayn.py`` (format ``"umrl.diayn.v1"``).
+"""DIAYN checkpoints, written by ``recipes/diayn.py`` (format ``"umrl.diayn.v1"``).
 
 A checkpoint is a ``torch.save``'d dict:
 
@@ -19,22 +19,52 @@ Files are ``<output_dir>/checkpoints/step_<frames>.pt``; the final one of a run 
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
 
+import torch
 from tensordict.nn import TensorDictModule
 from torchrl.modules import ProbabilisticActor
 
+from umrl.checkpoints.format import CheckpointFormat
 from umrl.modules.discriminator import make_discriminator
 from umrl.modules.sac import make_skill_actor
-from umrl.runtime import load_checkpoint
+from umrl.runtime import Checkpointer
 
-FORMAT = "umrl.diayn.v1"
+DIAYN_FORMAT = CheckpointFormat(
+    "umrl.diayn.v1", "DIAYN",
+    meta_keys=("env", "obs_dim", "act_dim", "num_skills", "hidden", "discriminator_hidden",
+               "discriminator_observation_key"),
+)
 
-__all__ = ["FORMAT", "load_diayn_checkpoint", "load_discriminator", "load_skill_policy"]
+__all__ = ["DIAYN_FORMAT", "load_diayn_checkpoint", "load_discriminator", "load_skill_policy",
+           "save_diayn_checkpoint"]
+
+
+def save_diayn_checkpoint(
+    checkpointer: Checkpointer,
+    *,
+    meta: Mapping[str, Any],
+    actor: torch.nn.Module,
+    discriminator: torch.nn.Module,
+    loss: torch.nn.Module,
+    optimizers: Mapping[str, torch.optim.Optimizer],
+    counters: Mapping[str, int],
+    config: Any,
+) -> Path:
+    """Write the DIAYN state above as ``step_<counters["frames"]>.pt``, with the torch RNG state."""
+    return DIAYN_FORMAT.save(
+        checkpointer, counters["frames"], meta, config,
+        actor=actor.state_dict(), discriminator=discriminator.state_dict(), loss=loss.state_dict(),
+        optimizers={k: o.state_dict() for k, o in optimizers.items()}, counters=dict(counters),
+        rng=torch.get_rng_state(),
+    )
 
 
 def load_diayn_checkpoint(path: str | os.PathLike) -> dict:
     """Load a DIAYN checkpoint: a ``step_*.pt`` file, a ``checkpoints/`` folder or a run's output_dir (latest)."""
-    return load_checkpoint(path, format=FORMAT, what="DIAYN")
+    return DIAYN_FORMAT.load(path)
 
 
 def load_discriminator(path: str | os.PathLike) -> tuple[TensorDictModule, int, int]:

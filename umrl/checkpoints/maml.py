@@ -1,4 +1,4 @@
-"""Reading the checkpoints written by ``recipes/maml.py`` (format ``"umrl.maml.v1"``).
+"""MAML checkpoints, written by ``recipes/maml.py`` (format ``"umrl.maml.v1"``).
 
 A checkpoint is a ``torch.save``'d dict:
 
@@ -17,20 +17,47 @@ is the final initialisation.
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
 
+import torch
 from torchrl.modules import ProbabilisticActor
 
+from umrl.checkpoints.format import CheckpointFormat
 from umrl.modules.policy import make_gaussian_policy
-from umrl.runtime import load_checkpoint
+from umrl.runtime import Checkpointer
 
-FORMAT = "umrl.maml.v1"
+MAML_FORMAT = CheckpointFormat(
+    "umrl.maml.v1", "MAML",
+    meta_keys=("env", "proposal", "obs_dim", "act_dim", "hidden", "init_std", "inner_lr", "num_inner_steps",
+               "first_order", "num_tasks", "trajectories_per_task", "horizon", "num_skills"),
+)
 
-__all__ = ["FORMAT", "load_maml_checkpoint", "load_maml_policy"]
+__all__ = ["MAML_FORMAT", "load_maml_checkpoint", "load_maml_policy", "save_maml_checkpoint"]
+
+
+def save_maml_checkpoint(
+    checkpointer: Checkpointer,
+    *,
+    meta: Mapping[str, Any],
+    policy: torch.nn.Module,
+    iteration: int,
+    env_steps: int,
+    task_rng: torch.Generator,
+    config: Any,
+) -> Path:
+    """Write the MAML state above as ``step_<iteration>.pt``, with the torch RNG and ``task_rng`` states."""
+    return MAML_FORMAT.save(
+        checkpointer, iteration, meta, config,
+        policy=policy.state_dict(), iteration=iteration, env_steps=env_steps, rng=torch.get_rng_state(),
+        task_rng=task_rng.get_state(),
+    )
 
 
 def load_maml_checkpoint(path: str | os.PathLike) -> dict:
     """Load a MAML checkpoint: a ``step_*.pt`` file, a ``checkpoints/`` folder or a run's output_dir (latest)."""
-    return load_checkpoint(path, format=FORMAT, what="MAML")
+    return MAML_FORMAT.load(path)
 
 
 def load_maml_policy(path: str | os.PathLike) -> tuple[ProbabilisticActor, float]:

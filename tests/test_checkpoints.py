@@ -1,0 +1,56 @@
+"""umrl.checkpoints: one format/version check for every loader and resume; saves carry the meta their loaders read."""
+import pytest
+import torch
+
+from umrl import checkpoints
+from umrl.checkpoints import DIAYN_FORMAT, MAML_FORMAT, VIME_FORMAT, CheckpointFormat
+from umrl.runtime import Checkpointer
+
+LOADERS = {
+    DIAYN_FORMAT: ["load_diayn_checkpoint", "load_discriminator", "load_skill_policy"],
+    MAML_FORMAT: ["load_maml_checkpoint", "load_maml_policy"],
+    VIME_FORMAT: ["load_vime_checkpoint", "load_vime_dynamics", "load_vime_policy"],
+}
+
+
+@pytest.mark.parametrize("fmt", list(LOADERS), ids=lambda f: f.what)
+def test_every_loader_rejects_another_format(tmp_path, fmt):
+    other = next(f for f in LOADERS if f is not fmt)
+    other.save(Checkpointer(tmp_path / "checkpoints"), 3, dict.fromkeys(other.meta_keys))
+    for name in LOADERS[fmt]:
+        with pytest.raises(ValueError, match=f"not a {fmt.what} checkpoint.*{other.name}"):
+            getattr(checkpoints, name)(tmp_path)
+    torch.save([1, 2], tmp_path / "step_9.pt")
+    with pytest.raises(ValueError, match="format 'list'"):
+        fmt.load(tmp_path / "step_9.pt")
+
+
+def test_save_requires_the_meta_its_loaders_read(tmp_path):
+    fmt = CheckpointFormat("test.v1", "Test", meta_keys=("env", "obs_dim"))
+    with pytest.raises(ValueError, match=r"lacks \['obs_dim'\]"):
+        fmt.save(Checkpointer(tmp_path), 1, {"env": "point_nav"})
+    path = fmt.save(Checkpointer(tmp_path), 1, {"env": "point_nav", "obs_dim": 2}, {"seed": 0}, weights=[1.0])
+    state = fmt.load(path)
+    assert state == {"format": "test.v1", "meta": {"env": "point_nav", "obs_dim": 2}, "weights": [1.0],
+                     "config": {"seed": 0}}
+
+
+def test_resume_checks_format_and_meta(tmp_path):
+    checkpointer = Checkpointer(tmp_path)
+    with pytest.raises(FileNotFoundError, match="no checkpoint"):
+        MAML_FORMAT.load_for_resume(checkpointer, {})
+    meta = dict.fromkeys(MAML_FORMAT.meta_keys, 1)
+    MAML_FORMAT.save(checkpointer, 1, meta)
+    assert MAML_FORMAT.load_for_resume(checkpointer, meta)["meta"] == meta
+    with pytest.raises(ValueError, match=r"differs from the checkpoint's.*'horizon': \(1, 2\)"):
+        MAML_FORMAT.load_for_resume(checkpointer, {**meta, "horizon": 2})
+    with pytest.raises(ValueError, match="not a VIME checkpoint"):
+        VIME_FORMAT.load_for_resume(checkpointer, {})
+
+
+def test_public_names():
+    expected = {"load_diayn_checkpoint", "load_discriminator", "load_skill_policy", "load_maml_checkpoint",
+                "load_maml_policy", "load_vime_checkpoint", "load_vime_dynamics", "load_vime_policy",
+                "save_diayn_checkpoint", "save_maml_checkpoint", "save_vime_checkpoint"}
+    assert expected <= set(checkpoints.__all__)
+    assert all(callable(getattr(checkpoints, name)) for name in expected)

@@ -1,0 +1,47 @@
+"""Checkpoint formats: each recipe's ``save_*`` beside its ``load_*``, one format/version check for all.
+
+======  ==================  ==========================================================================
+format  written by          read with
+======  ==================  ==========================================================================
+DIAYN   recipes/diayn.py    :func:`load_diayn_checkpoint`, :func:`load_discriminator`, :func:`load_skill_policy`
+MAML    recipes/maml.py     :func:`load_maml_checkpoint`, :func:`load_maml_policy`
+VIME    recipes/vime.py     :func:`load_vime_checkpoint`, :func:`load_vime_policy`, :func:`load_vime_dynamics`
+======  ==================  ==========================================================================
+
+Every loader accepts a ``step_*.pt`` file, a ``checkpoints/`` folder or a run's output_dir (the latest checkpoint),
+and raises ``ValueError`` for a file of another format (:class:`~umrl.checkpoints.format.CheckpointFormat`).
+"""
+from umrl.checkpoints.diayn import (
+    DIAYN_FORMAT,
+    load_diayn_checkpoint,
+    load_discriminator,
+    load_skill_policy,
+    save_diayn_checkpoint,
+)
+from umrl.checkpoints.format import CheckpointFormat
+from umrl.checkpoints.maml import MAML_FORMAT, load_maml_checkpoint, load_maml_policy, save_maml_checkpoint
+from umrl.checkpoints.vime import (
+    VIME_FORMAT,
+    load_vime_checkpoint,
+    load_vime_dynamics,
+    load_vime_policy,
+    save_vime_checkpoint,
+)
+
+__all__ = [
+    "DIAYN_FORMAT",
+    "MAML_FORMAT",
+    "VIME_FORMAT",
+    "CheckpointFormat",
+    "load_diayn_checkpoint",
+    "load_discriminator",
+    "load_maml_checkpoint",
+    "load_maml_policy",
+    "load_skill_policy",
+    "load_vime_checkpoint",
+    "load_vime_dynamics",
+    "load_vime_policy",
+    "save_diayn_checkpoint",
+    "save_maml_checkpoint",
+    "save_vime_checkpoint",
+]

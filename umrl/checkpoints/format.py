@@ -1,0 +1,67 @@
+"""The one format/version check every checkpoint loader and every ``resume=true`` goes through.
+
+A umrl checkpoint is a ``torch.save``'d dict with ``"format"`` (a versioned name such as ``"umrl.maml.v1"``),
+``"meta"`` (what a loader needs to rebuild the networks) and format-specific entries. :class:`CheckpointFormat` names
+one format, the ``meta`` keys its loaders read, and does the saving (stamping ``"format"``) and the checked loading.
+"""
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from umrl.runtime import Checkpointer, resolve_checkpoint, to_container
+
+__all__ = ["CheckpointFormat"]
+
+
+@dataclass(frozen=True)
+class CheckpointFormat:
+    """One checkpoint format.
+
+    Attributes:
+        name: the versioned tag stored under ``"format"``, e.g. ``"umrl.diayn.v1"``.
+        what: the recipe's name for error messages, e.g. ``"DIAYN"``.
+        meta_keys: keys every ``state["meta"]`` of this format carries (checked on save).
+    """
+
+    name: str
+    what: str
+    meta_keys: tuple[str, ...]
+
+    def save(self, checkpointer: Checkpointer, step: int, meta: Mapping[str, Any], config: Any = None,
+             **entries: Any) -> Path:
+        """Write ``{"format": name, "meta": meta, **entries, "config": resolved config}`` as ``step_<step>.pt``
+        (the config also beside it as ``config.yaml``); ``meta`` must carry :attr:`meta_keys`."""
+        missing = sorted(set(self.meta_keys) - set(meta))
+        if missing:
+            raise ValueError(f"{self.what} checkpoint meta lacks {missing}; it must carry {list(self.meta_keys)}.")
+        state = {"format": self.name, "meta": dict(meta), **entries,
+                 "config": to_container(config) if config is not None else None}
+        return checkpointer.save(state, step, config)
+
+    def check(self, state: Any, source: str | os.PathLike) -> dict:
+        """Return ``state`` if it is a dict of this format, else raise ``ValueError`` naming ``source``."""
+        if not isinstance(state, dict) or state.get("format") != self.name:
+            found = state.get("format") if isinstance(state, dict) else type(state).__name__
+            raise ValueError(f"{source} is not a {self.what} checkpoint (format {found!r}, expected {self.name!r}).")
+        return state
+
+    def load(self, path: str | os.PathLike) -> dict:
+        """Load and check a checkpoint: a ``step_*.pt`` file, a ``checkpoints/`` folder or a run's output_dir
+        (the latest ``step_*.pt``); ``FileNotFoundError`` says what was looked for."""
+        file = resolve_checkpoint(path)
+        return self.check(torch.load(file, map_location="cpu", weights_only=False), file)
+
+    def load_for_resume(self, checkpointer: Checkpointer, meta: Mapping[str, Any]) -> dict:
+        """The latest checkpoint of ``checkpointer``, checked, whose ``meta`` equals ``meta`` (what the current config
+        builds): resuming with another env, network or task setting raises ``ValueError`` listing the differences."""
+        state = self.load(checkpointer.directory)
+        mismatched = {k: (state["meta"].get(k), v) for k, v in meta.items() if state["meta"].get(k) != v}
+        if mismatched:
+            raise ValueError(f"resume=true with a config that differs from the checkpoint's (saved, now): {mismatched}.")
+        return state

@@ -1,0 +1,93 @@
+"""VIME checkpoints, written by ``recipes/vime.py`` (format ``"umrl.vime.v1"``).
+
+A ``torch.save``'d dict, files ``<output_dir>/checkpoints/step_<iteration>.pt`` (the final one of a run is the
+latest), with
+
+- ``"format"``: ``"umrl.vime.v1"``;
+- ``"meta"``: ``env`` (name), ``obs_dim``, ``act_dim``, ``policy_hidden``, ``policy_init_std``, ``dynamics_hidden``,
+  ``prior_std``, ``likelihood_std``;
+- ``"policy"``: state dict of :func:`umrl.modules.policy.make_gaussian_policy` ``(obs_dim, act_dim,
+  hidden=policy_hidden, init_std=policy_init_std)`` (reads ``"observation"``, writes ``"loc"``, ``"scale"``,
+  ``"action"``, ``"action_log_prob"``);
+- ``"dynamics"``: state dict of :class:`~umrl.modules.bnn.BayesianDynamics` (posterior and running statistics);
+- ``"dynamics_optimizer"``: Adam state; ``"median_history"``: the bonus normaliser's recent medians;
+- ``"replay"`` / ``"holdout"``: the dynamics model's transitions (TensorDicts, oldest first) or ``None``;
+- ``"counters"``: ``iteration``, ``frames``; ``"initial_coverage"``: coverage of the untrained policy; ``"visited"``:
+  the cells (or velocity range) visited so far;
+  ``"rng"``: torch RNG state; ``"config"``: the resolved recipe config (also beside it as ``config.yaml``).
+"""
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.modules import ProbabilisticActor
+
+from umrl.checkpoints.format import CheckpointFormat
+from umrl.modules.bnn import BayesianDynamics
+from umrl.modules.policy import make_gaussian_policy
+from umrl.runtime import Checkpointer
+
+VIME_FORMAT = CheckpointFormat(
+    "umrl.vime.v1", "VIME",
+    meta_keys=("env", "obs_dim", "act_dim", "policy_hidden", "policy_init_std", "dynamics_hidden", "prior_std",
+               "likelihood_std"),
+)
+
+__all__ = ["VIME_FORMAT", "load_vime_checkpoint", "load_vime_dynamics", "load_vime_policy", "save_vime_checkpoint"]
+
+
+def save_vime_checkpoint(
+    checkpointer: Checkpointer,
+    *,
+    meta: Mapping[str, Any],
+    policy: torch.nn.Module,
+    dynamics: BayesianDynamics,
+    dynamics_optimizer: torch.optim.Optimizer,
+    median_history: torch.Tensor,
+    replay: TensorDictBase | None,
+    holdout: TensorDictBase | None,
+    counters: Mapping[str, int],
+    initial_coverage: Mapping[str, float],
+    visited: torch.Tensor | None,
+    config: Any,
+) -> Path:
+    """Write the VIME state above as ``step_<counters["iteration"]>.pt``, with the torch RNG state."""
+    return VIME_FORMAT.save(
+        checkpointer, counters["iteration"], meta, config,
+        policy=policy.state_dict(), dynamics=dynamics.state_dict(),
+        dynamics_optimizer=dynamics_optimizer.state_dict(), median_history=median_history.clone(),
+        replay=replay, holdout=holdout, counters=dict(counters), initial_coverage=dict(initial_coverage),
+        visited=visited, rng=torch.get_rng_state(),
+    )
+
+
+def load_vime_checkpoint(path: str | os.PathLike) -> dict:
+    """Load a VIME checkpoint: a ``step_*.pt`` file, a ``checkpoints/`` folder or a run's output_dir (latest)."""
+    return VIME_FORMAT.load(path)
+
+
+def load_vime_policy(path: str | os.PathLike) -> ProbabilisticActor:
+    """The VIME-pre-trained 2x300 Gaussian policy (trainable, for fine-tuning; the VIME-init baseline).
+
+    Reads ``"observation"``, writes ``"loc"``, ``"scale"``, ``"action"`` and ``"action_log_prob"``, exactly like
+    :func:`umrl.modules.policy.make_gaussian_policy`.
+    """
+    meta = (state := load_vime_checkpoint(path))["meta"]
+    policy = make_gaussian_policy(meta["obs_dim"], meta["act_dim"], hidden=meta["policy_hidden"],
+                                  init_std=meta["policy_init_std"])
+    policy.load_state_dict(state["policy"])
+    return policy
+
+
+def load_vime_dynamics(path: str | os.PathLike) -> BayesianDynamics:
+    """The trained Bayesian dynamics model (with its running statistics), e.g. to score transitions."""
+    meta = (state := load_vime_checkpoint(path))["meta"]
+    dynamics = BayesianDynamics(meta["obs_dim"], meta["act_dim"], hidden=meta["dynamics_hidden"],
+                                prior_std=meta["prior_std"], likelihood_std=meta["likelihood_std"])
+    dynamics.load_state_dict(state["dynamics"])
+    return dynamics
