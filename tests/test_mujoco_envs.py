@@ -130,12 +130,60 @@ def test_bad_input():
         env.set_mj_state(np.zeros((1, 8)), np.zeros((1, 9)), env_ids=[0])
 
 
-def test_thread_pool_matches_single_thread():
-    """Stepping the copies on 2 threads gives the same trajectories as on one."""
-    envs = [BATCHED_ENVS["ant"](32, seed=4, num_threads=n) for n in (1, 2)]
-    assert envs[0]._pool is None and envs[1]._pool is not None
-    runs = [_run(env, _actions(32, 8, 5)) for env in envs]
+@pytest.mark.parametrize(("name", "act_dim"), [("half_cheetah", 6), ("ant", 8)])
+def test_thread_count_does_not_change_trajectories(name, act_dim):
+    """Stepping the copies on 2 threads gives the same trajectories as on one (mujoco.batch or Ant's pool)."""
+    envs = [BATCHED_ENVS[name](32, seed=4, num_threads=n) for n in (1, 2)]
+    assert [env._sim.nthread for env in envs] == [1, 2]
+    runs = [_run(env, _actions(32, act_dim, 5)) for env in envs]
     for a, b in zip(*runs):
         assert torch.equal(a["observation"], b["observation"]) and torch.equal(
             a["env_reward"], b["env_reward"]
         )
+
+
+def _resets_and_steps(env, n: int, act_dim: int) -> list[torch.Tensor]:
+    """Observations of ``n`` rounds of (full reset, partial reset of copy 0, 3 steps) with fixed actions."""
+    out, actions = [], _actions(env.batch_size[0], act_dim, 3 * n, seed=5)
+    for k in range(n):
+        td = env.reset()
+        td["_reset"] = torch.zeros(env.batch_size[0], 1, dtype=torch.bool)
+        td["_reset"][0] = True
+        td = env.reset(td)
+        out.append(td["observation"].clone())
+        for a in actions[3 * k : 3 * k + 3]:
+            td["action"] = a
+            td = step_mdp(env.step(td))
+            out.append(td["observation"].clone())
+    return out
+
+
+@pytest.mark.parametrize(("name", "act_dim"), [("half_cheetah", 6), ("ant", 8)])
+def test_reset_rng_state_round_trips_through_state_dict(name, act_dim):
+    """The reset-noise generator saved mid-run and loaded into a fresh env gives bit-identical resets and steps."""
+    env = make_mujoco_env(name, 4, seed=11)
+    _resets_and_steps(env, 2, act_dim)  # mid-run: the generator has advanced
+    saved, saved_rng = env.state_dict(), env.rng_state
+    expected = _resets_and_steps(env, 3, act_dim)
+    fresh = make_mujoco_env(name, 4, seed=0)
+    assert not torch.equal(_resets_and_steps(fresh, 1, act_dim)[0], expected[0])
+    fresh.load_state_dict(saved)
+    for a, b in zip(_resets_and_steps(fresh, 3, act_dim), expected, strict=True):
+        assert torch.equal(a, b)
+    other = make_mujoco_env(name, 4)
+    other.rng_state = saved_rng  # the getter/setter pair gives the same
+    assert all(torch.equal(a, b) for a, b in zip(_resets_and_steps(other, 3, act_dim), expected, strict=True))
+    with pytest.raises(ValueError, match="PCG64"):
+        other.rng_state = {"bit_generator": "MT19937"}
+
+
+def test_no_mujoco_log_file_in_working_directory(tmp_path, monkeypatch):
+    """Model compiler warnings and unstable-simulation warnings reach no ./MUJOCO_LOG.TXT (both backends)."""
+    monkeypatch.chdir(tmp_path)
+    for backend in MUJOCO_BACKENDS:
+        make_mujoco_env("half_cheetah", 2, backend=backend)  # loading the v5 XML warns (settotalmass)
+    env = BATCHED_ENVS["ant"](2, seed=0)
+    env.reset()
+    env.set_mj_state(np.full((1, env.model.nq), np.nan), np.zeros((1, env.model.nv)), env_ids=[1])
+    env.step(env.reset().set("action", torch.zeros(2, 8)))  # MuJoCo warns "Nan, Inf or huge value in QPOS"
+    assert env.model.nq and not (tmp_path / "MUJOCO_LOG.TXT").exists()

@@ -6,19 +6,24 @@ gymnasium in the step loop. Each copy is advanced by the same calls gymnasium ma
 plus ``mj_rnePostConstraint`` where contact forces are observed), so trajectories match gymnasium's bit for bit.
 
 A copy is its full integration state (``mjSTATE_INTEGRATION``: time, qpos, qvel, act, warm start, controls, applied
-forces; ~100-150 floats), one row of a ``[B, nstate]`` array. Each worker thread owns one ``MjData``, loads a copy's
-row into it, steps it and writes the row back: the ``MjData`` stays in cache (13-30 % faster than keeping ``B``
-``MjData``, measured) and memory stays small (a gymnasium ``MjData`` reserves a 6-15 MB arena). Copies are split
-over a thread pool (``mj_step`` releases the GIL).
+forces; ~100-150 floats), one row of the ``[B, nstate]`` state array of a :class:`mujoco.batch.Batch` (MuJoCo's own
+batch: one native call steps all rows on a C++ thread pool with the GIL released, bit-identical to a loop of
+``mj_step`` at any thread count). HalfCheetah is stepped by that call. Ant also needs ``mj_rnePostConstraint``
+after each step (gymnasium's contact forces), which the batch does not run: its rows are stepped copy by copy on a
+Python thread pool, one ``MjData`` per thread (``mj_step`` releases the GIL, the per-copy calls around it do not).
 
 Keys (``B`` = batch size, all float32 unless noted): ``"observation"`` ``[B, obs_dim]``, ``"action"`` ``[B, act_dim]``
 in ``[-1, 1]``, ``("next", "reward")`` ``[B, 1]`` zeros (reward-free CMP), ``"env_reward"`` ``[B, 1]`` gymnasium's
 reward (0 at reset), the physics keys of :data:`PHYSICS_KEYS` (0 at reset for velocities and reward terms), and
 ``"done"``/``"terminated"``/``"truncated"`` ``[B, 1]`` bool. No time limit: wrap with ``StepCounter``.
+
+Resume: the reset-noise generator is the env's only random state; ``set_seed`` seeds it, :attr:`rng_state` reads
+and writes it, and it travels in ``state_dict()`` / ``load_state_dict()`` (``nn.Module`` extra state).
 """
 
 from __future__ import annotations
 
+import copy
 import itertools
 import os
 from concurrent.futures import ThreadPoolExecutor
@@ -26,11 +31,16 @@ from dataclasses import dataclass, field
 
 import gymnasium
 import mujoco
+import mujoco.batch
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
+
+from umrl.envs.mujoco_log import disable_mujoco_log_file
+
+disable_mujoco_log_file()  # MuJoCo warnings go to the console, not to ./MUJOCO_LOG.TXT
 
 ASSETS_DIR = os.path.join(os.path.dirname(gymnasium.__file__), "envs", "mujoco", "assets")
 
@@ -90,13 +100,14 @@ class BatchedMujocoEnv(EnvBase):
 
     Keyword Args:
         seed: seeds the reset noise (numpy ``PCG64``, like gymnasium's ``np_random``); ``None`` draws fresh entropy.
-        device: device of the returned tensors (physics runs on CPU).
+        device: device of the returned tensors (physics runs on CPU threads; outputs move once per step).
         num_threads: threads stepping the copies; default: the CPUs this process may use, with at least
             16 copies per thread.
     """
 
     NAME: str = ""
-    # Ant reads the torso body's position and the contact forces (computed by mj_rnePostConstraint after the step).
+    # Ant reads the torso body's position and the contact forces (computed by mj_rnePostConstraint after the step):
+    # stepped copy by copy on Python threads; the others in one mujoco.batch call.
     _reads_body_and_contacts = False
     batch_locked = True
 
@@ -108,8 +119,11 @@ class BatchedMujocoEnv(EnvBase):
         device: torch.device | str = "cpu",
         num_threads: int | None = None,
     ):
-        if not isinstance(num_envs, int) or num_envs < 1:
+        if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}.")
+        if num_threads is not None and (isinstance(num_threads, bool) or not isinstance(num_threads, int)
+                                        or num_threads < 1):
+            raise ValueError(f"num_threads must be None or a positive integer, got {num_threads!r}.")
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
         spec = MODEL_SPECS[self.NAME]
         self.model = mujoco.MjModel.from_xml_path(os.path.join(ASSETS_DIR, spec.xml_file))
@@ -117,22 +131,26 @@ class BatchedMujocoEnv(EnvBase):
         self.dt = self.model.opt.timestep * self._frame_skip  # same float as gymnasium's env.dt
         self.reset_noise_scale = spec.reset_noise_scale
         m = self.model
-        qpos = _state_slice(m, mujoco.mjtState.mjSTATE_QPOS)
-        self._ctrl_slice = _state_slice(m, mujoco.mjtState.mjSTATE_CTRL)
-        # State buffers [B, ...] in float64; row i is written only by the thread stepping copy i.
-        self._state = np.zeros((num_envs, mujoco.mj_stateSize(m, _STATE)))
-        self._qstate = self._state[:, qpos.start : qpos.start + m.nq + m.nv]  # view: qpos then qvel
-        self._body_xy = np.zeros((num_envs, 2))  # gymnasium's data.body(1).xpos[:2]
-        self._cfrc_ext = np.zeros((num_envs, m.nbody, 6))
         if num_threads is None:
             num_threads = len(os.sched_getaffinity(0))
         num_threads = max(1, min(num_threads, num_envs // _MIN_COPIES_PER_THREAD))
-        bounds = np.linspace(0, num_envs, num_threads + 1).astype(int)
-        # One worker per thread: its MjData and the (state, torso x-y, contact forces) rows of its copies.
-        rows = list(zip(self._state, self._body_xy, self._cfrc_ext))
-        self._workers = [(mujoco.MjData(m), rows[lo:hi]) for lo, hi in itertools.pairwise(bounds)]
-        self._pool = ThreadPoolExecutor(num_threads) if num_threads > 1 else None
-        data = self._workers[0][0]
+        # State rows [B, nstate] float64 of MuJoCo's batch; row i is written only by the thread stepping copy i.
+        self._sim = mujoco.batch.Batch(m, num_envs, nthread=num_threads)
+        self._state = self._sim.state
+        qpos = _state_slice(m, mujoco.mjtState.mjSTATE_QPOS)
+        self._qstate = self._state[:, qpos.start : qpos.start + m.nq + m.nv]  # view: qpos then qvel
+        self._ctrl = self._sim.bind("ctrl")
+        self._body_xy = np.zeros((num_envs, 2))  # gymnasium's data.body(1).xpos[:2]
+        self._cfrc_ext = np.zeros((num_envs, m.nbody, 6))
+        self._xpos = self._sim.bind("xpos")  # refreshed by every batch call on a copy (resets, set_mj_state)
+        self._workers, self._pool = [], None
+        if self._reads_body_and_contacts:
+            bounds = np.linspace(0, num_envs, num_threads + 1).astype(int)
+            # One worker per thread: its MjData and the (state, torso x-y, contact forces) rows of its copies.
+            rows = list(zip(self._state, self._body_xy, self._cfrc_ext))
+            self._workers = [(mujoco.MjData(m), rows[lo:hi]) for lo, hi in itertools.pairwise(bounds)]
+            self._pool = ThreadPoolExecutor(num_threads) if num_threads > 1 else None
+        data = mujoco.MjData(m)
         self._init_qpos, self._init_qvel = data.qpos.copy(), data.qvel.copy()
         self._rng = np.random.default_rng(seed)
         self._make_specs()
@@ -170,46 +188,79 @@ class BatchedMujocoEnv(EnvBase):
         raise NotImplementedError
 
     # --------------------------------------------------------------------------------------------------- physics
-    def _advance(self, worker) -> None:
+    def _advance(self) -> None:
+        """Advance every copy by ``frame_skip`` ``mj_step`` calls from its state row (controls already written)."""
+        if not self._reads_body_and_contacts:
+            self._sim.step(nstep=self._frame_skip)
+        elif self._pool is None:
+            self._advance_copies(self._workers[0])
+        else:
+            list(self._pool.map(self._advance_copies, self._workers))
+
+    def _advance_copies(self, worker) -> None:
         """Step each copy of ``worker``: load its state, ``mj_step`` ``frame_skip`` times, store the state back."""
         (data, rows), model, nstep = worker, self.model, self._frame_skip
-        extras = self._reads_body_and_contacts
         xpos, cfrc_ext = data.xpos[1, :2], data.cfrc_ext
         for state, body_xy, cfrc in rows:
             mujoco.mj_setState(model, data, state, _STATE)
             mujoco.mj_step(model, data, nstep)
             mujoco.mj_getState(model, data, state, _STATE)
-            if extras:  # the mj_rnePostConstraint call is gymnasium's MujocoEnv._step_mujoco_simulation's
-                mujoco.mj_rnePostConstraint(model, data)
-                body_xy[:] = xpos
-                cfrc[:] = cfrc_ext
+            # the mj_rnePostConstraint call is gymnasium's MujocoEnv._step_mujoco_simulation's
+            mujoco.mj_rnePostConstraint(model, data)
+            body_xy[:] = xpos
+            cfrc[:] = cfrc_ext
 
-    def _set_copies(self, ids, qpos: np.ndarray, qvel: np.ndarray, *, reset: bool) -> None:
-        """Gymnasium's ``set_state`` (after ``mj_resetData`` if ``reset``) for copies ``ids``, on the main thread."""
-        model, data = self.model, self._workers[0][0]
-        for i, qp, qv in zip(ids, qpos, qvel):
-            if reset:
-                mujoco.mj_resetData(model, data)
-            else:  # gymnasium's set_state keeps the copy's own state, incl. its last contact forces
-                mujoco.mj_setState(model, data, self._state[i], _STATE)
-                data.cfrc_ext[:] = self._cfrc_ext[i]
-            data.qpos[:] = qp
-            data.qvel[:] = qv
-            mujoco.mj_forward(model, data)
-            mujoco.mj_getState(model, data, self._state[i], _STATE)
-            self._body_xy[i] = data.xpos[1, :2]
-            self._cfrc_ext[i] = data.cfrc_ext
+    def _set_copies(self, ids: np.ndarray, qpos: np.ndarray, qvel: np.ndarray, *, reset: bool) -> None:
+        """Gymnasium's ``set_state`` (after ``mj_resetData`` if ``reset``) for the sorted copies ``ids``.
+
+        ``mj_forward`` leaves the contact forces alone: a reset zeroes them (``mj_resetData``), ``set_state``
+        mid-episode keeps the copy's last ones, as gymnasium's ``MjData`` does.
+        """
+        if reset:
+            self._sim.reset(ids, stage=mujoco.mjtStage.mjSTAGE_NONE)
+            self._cfrc_ext[ids] = 0.0
+        self._qstate[ids] = np.concatenate([qpos, qvel], axis=-1)
+        self._sim.forward(ids)
+        self._body_xy[ids] = self._xpos[ids, 1, :2]
 
     def set_mj_state(self, qpos: np.ndarray, qvel: np.ndarray, env_ids=None) -> None:
         """Gymnasium's ``set_state`` for copies ``env_ids`` (default all): ``qpos`` ``[n, nq]``, ``qvel`` ``[n, nv]``."""
-        ids = range(self.batch_size[0]) if env_ids is None else [int(i) for i in env_ids]
+        B = self.batch_size[0]
+        ids = np.arange(B) if env_ids is None else np.asarray(env_ids, dtype=np.int64).reshape(-1)
+        if ids.size and (ids.min() < 0 or ids.max() >= B or np.unique(ids).size != ids.size):
+            raise ValueError(f"env_ids must be distinct copies in [0, {B}), got {ids.tolist()}.")
         qpos, qvel = np.atleast_2d(qpos), np.atleast_2d(qvel)
         if qpos.shape != (len(ids), self.model.nq) or qvel.shape != (len(ids), self.model.nv):
             raise ValueError(
                 f"expected qpos [{len(ids)}, {self.model.nq}] and qvel [{len(ids)}, {self.model.nv}], "
                 f"got {list(qpos.shape)} and {list(qvel.shape)}."
             )
-        self._set_copies(ids, qpos, qvel, reset=False)
+        order = np.argsort(ids)
+        self._set_copies(ids[order], qpos[order], qvel[order], reset=False)
+
+    # ----------------------------------------------------------------------------------------------- reset noise
+    @property
+    def rng_state(self) -> dict:
+        """State of the reset-noise generator (numpy ``PCG64`` ``bit_generator.state``, a copy)."""
+        return copy.deepcopy(self._rng.bit_generator.state)
+
+    @rng_state.setter
+    def rng_state(self, state: dict) -> None:
+        if not isinstance(state, dict) or state.get("bit_generator") != "PCG64":
+            raise ValueError(
+                "rng_state must be a numpy PCG64 bit_generator.state dict (bit_generator='PCG64'), got "
+                f"{state!r:.200}."
+            )
+        self._rng.bit_generator.state = copy.deepcopy(state)
+
+    def get_extra_state(self) -> dict:
+        """``nn.Module`` extra state, so ``state_dict()`` carries the reset-noise generator."""
+        return {"reset_rng": self.rng_state}
+
+    def set_extra_state(self, state: dict) -> None:
+        if not isinstance(state, dict) or "reset_rng" not in state:
+            raise ValueError(f"expected extra state {{'reset_rng': ...}}, got keys {list(state)!r:.200}.")
+        self.rng_state = state["reset_rng"]
 
     # ---------------------------------------------------------------------------------------------- EnvBase API
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
@@ -235,35 +286,34 @@ class BatchedMujocoEnv(EnvBase):
         action = tensordict.get("action").detach().to("cpu", torch.float32).numpy()
         qpos_before = self._qstate[:, : self.model.nq].copy()
         xy_before = self._body_xy.copy()
-        self._state[:, self._ctrl_slice] = action
-        if self._pool is None:
-            self._advance(self._workers[0])
-        else:
-            list(self._pool.map(self._advance, self._workers))
+        self._ctrl[:] = action
+        self._advance()
         env_reward, physics, terminated = self._step_values(action, qpos_before, xy_before)
-        out = self._output(env_reward, physics, terminated)
-        out.set("reward", torch.zeros(self.batch_size[0], 1, device=self.device))
+        out = self._output(env_reward, physics, terminated, reward=True)
         return out
 
-    def _output(self, env_reward, physics, terminated) -> TensorDict:
-        B, dev = self.batch_size[0], self.device
+    def _output(self, env_reward, physics, terminated, *, reward: bool = False) -> TensorDictBase:
+        """The step/reset TensorDict, built on CPU and moved to the env's device in one call."""
+        B = self.batch_size[0]
 
         def f32(x: np.ndarray) -> torch.Tensor:
-            return torch.as_tensor(np.asarray(x, dtype=np.float32).reshape(B, -1), device=dev)
+            return torch.from_numpy(np.asarray(x, dtype=np.float32).reshape(B, -1))
 
-        done = torch.as_tensor(terminated, device=dev).reshape(B, 1)
-        return TensorDict(
+        done = torch.from_numpy(np.asarray(terminated, dtype=bool).reshape(B, 1))
+        out = TensorDict(
             {
                 "observation": f32(self._observe()),
                 "env_reward": f32(env_reward),
                 **{k: f32(v) for k, v in physics.items()},
                 "done": done,
                 "terminated": done.clone(),
-                "truncated": torch.zeros(B, 1, dtype=torch.bool, device=dev),
+                "truncated": torch.zeros(B, 1, dtype=torch.bool),
             },
             batch_size=self.batch_size,
-            device=dev,
         )
+        if reward:
+            out.set("reward", torch.zeros(B, 1))
+        return out.to(self.device)
 
     def _set_seed(self, seed: int | None) -> None:
         self._rng = np.random.default_rng(seed)
