@@ -1,0 +1,72 @@
+"""Config groups shared by several schemas: env, logger, checkpoint, TRPO and policy settings."""
+# ruff: noqa: RUF009  (the field helpers of umrl.configs.validate return dataclasses.field(...) objects)
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from umrl.configs.validate import boolean, choice, int_list, integer, number, string
+from umrl.envs import BACKENDS, ENV_NAMES
+from umrl.runtime import LOGGER_BACKENDS
+
+LOGGER_MODES = ("offline", "online", "disabled")
+
+
+@dataclass
+class EnvConfig:
+    """``name`` (one of :data:`umrl.envs.ENV_NAMES`), ``horizon`` (steps per episode, >= 1)."""
+
+    name: str = choice(ENV_NAMES)
+    horizon: int = integer(min=1)
+
+
+@dataclass
+class BatchedEnvConfig(EnvConfig):
+    """:class:`EnvConfig` plus ``num_envs`` (copies stepped as one batch) and the MuJoCo ``backend``."""
+
+    num_envs: int = integer(min=1)
+    backend: str = choice(BACKENDS)
+
+
+@dataclass
+class LoggerConfig:
+    """``backend`` wandb | csv | none, wandb ``project``, ``group`` (null: none) and ``mode``."""
+
+    backend: str = choice(LOGGER_BACKENDS)
+    project: str = string()
+    group: str | None = string()
+    mode: str = choice(LOGGER_MODES)
+
+
+@dataclass
+class RunLoggerConfig(LoggerConfig):
+    """:class:`LoggerConfig` plus the run's ``exp_name``."""
+
+    exp_name: str = string()
+
+
+@dataclass
+class CheckpointConfig:
+    """``every`` (iterations or frames between checkpoints, >= 1) and ``keep_all`` (else only the latest)."""
+
+    every: int = integer(min=1)
+    keep_all: bool = boolean()
+
+
+@dataclass
+class PolicyConfig:
+    """The Gaussian policy: ``hidden`` layer widths (non-empty, each >= 1) and ``init_std`` (> 0)."""
+
+    hidden: list[int] = int_list(min=1, min_len=1)
+    init_std: float = number(gt=0)
+
+
+@dataclass
+class TRPOConfig:
+    """TRPO step: ``max_kl`` > 0, ``damping`` >= 0, ``cg_iters`` >= 1, ``backtrack_ratio`` in (0, 1),
+    ``max_backtracks`` >= 0."""
+
+    max_kl: float = number(gt=0)
+    damping: float = number(ge=0)
+    cg_iters: int = integer(min=1)
+    backtrack_ratio: float = number(gt=0, lt=1)
+    max_backtracks: int = integer(min=0)

@@ -1,0 +1,80 @@
+"""Schema of ``recipes/config/diayn.yaml`` (DIAYN task proposal)."""
+# ruff: noqa: RUF009  (the field helpers of umrl.configs.validate return dataclasses.field(...) objects)
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from umrl.configs.common import BatchedEnvConfig, CheckpointConfig, RunLoggerConfig
+from umrl.configs.validate import boolean, device, group, int_list, integer, number, string
+from umrl.validation import InvalidValue
+
+
+@dataclass
+class NetworkConfig:
+    hidden: list[int] = int_list(min=1, min_len=1)
+    discriminator_hidden: list[int] = int_list(min=1, min_len=1)
+
+
+@dataclass
+class CollectorConfig:
+    total_frames: int = integer(min=1)
+    frames_per_batch: int = integer(min=1)
+    init_random_frames: int = integer(min=0)
+
+
+@dataclass
+class ReplayBufferConfig:
+    size: int = integer(min=1)
+    batch_size: int = integer(min=1)
+
+
+@dataclass
+class OptimConfig:
+    lr: float = number(gt=0)
+    discriminator_lr: float = number(gt=0)
+    updates_per_frame: float = number(gt=0)
+    gamma: float = number(ge=0, le=1)
+    tau: float = number(gt=0, le=1)
+    alpha: float = number(ge=0)
+    fixed_alpha: bool = boolean()
+
+
+@dataclass
+class EvalConfig:
+    every: int = integer(min=1)
+    episodes_per_skill: int = integer(min=1)
+
+
+@dataclass
+class DIAYNConfig:
+    """Every key of ``recipes/config/diayn.yaml``; the yaml's comments say what each does."""
+
+    seed: int = integer(min=0)
+    device: str = device()
+    num_threads: int = integer(min=1)
+    env: BatchedEnvConfig = group(BatchedEnvConfig)
+    num_skills: int | None = integer(min=2)
+    network: NetworkConfig = group(NetworkConfig)
+    collector: CollectorConfig = group(CollectorConfig)
+    replay_buffer: ReplayBufferConfig = group(ReplayBufferConfig)
+    optim: OptimConfig = group(OptimConfig)
+    eval: EvalConfig = group(EvalConfig)
+    checkpoint: CheckpointConfig = group(CheckpointConfig)
+    logger: RunLoggerConfig = group(RunLoggerConfig)
+    output_dir: str = string()
+    resume: bool = boolean()
+    progress: bool = boolean()
+
+    @staticmethod
+    def cross_check(cfg: dict) -> list[str]:
+        """The collector's batch holds whole env steps; the replay batch fits in the buffer."""
+        errors = []
+        fpb, num_envs = cfg["collector"]["frames_per_batch"], cfg["env"]["num_envs"]
+        if fpb % num_envs:
+            errors.append(InvalidValue("collector.frames_per_batch", fpb,
+                                       f"a multiple of env.num_envs ({num_envs})").message())
+        batch, size = cfg["replay_buffer"]["batch_size"], cfg["replay_buffer"]["size"]
+        if batch > size:
+            errors.append(InvalidValue("replay_buffer.batch_size", batch,
+                                       f"an integer <= replay_buffer.size ({size})").message())
+        return errors

@@ -1,0 +1,75 @@
+"""Schema of ``recipes/config/maml.yaml`` (MAML meta-training: UML-DIAYN, UML-random, oracle)."""
+# ruff: noqa: RUF009  (the field helpers of umrl.configs.validate return dataclasses.field(...) objects)
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from umrl.configs.common import CheckpointConfig, EnvConfig, PolicyConfig, RunLoggerConfig, TRPOConfig
+from umrl.configs.validate import boolean, choice, device, group, integer, number, string
+from umrl.proposals import PROPOSALS
+from umrl.validation import InvalidValue, check_path_exists
+
+HVP_MODES = ("gauss_newton", "exact")
+"""``trpo.hvp``: ``gauss_newton`` (J^T F J through the inner step) or ``exact`` (the KL's Hessian)."""
+
+
+@dataclass
+class InnerConfig:
+    """``maml`` group: inner step size and count, FOMAML switch, per-task loop (true) / vmap (false) / auto (null)."""
+
+    inner_lr: float = number(gt=0)
+    num_inner_steps: int = integer(min=1)
+    first_order: bool = boolean()
+    task_loop: bool | None = boolean()
+
+
+@dataclass
+class AdvantageConfig:
+    gamma: float = number(ge=0, le=1)
+    lmbda: float = number(ge=0, le=1)
+    normalize: bool = boolean()
+
+
+@dataclass
+class MetaTRPOConfig(TRPOConfig):
+    """:class:`TRPOConfig` plus the Hessian-vector product (``hvp``) and the batch share it uses (in (0, 1])."""
+
+    hvp: str = choice(HVP_MODES)
+    hvp_fraction: float = number(gt=0, le=1)
+
+
+@dataclass
+class MAMLConfig:
+    """Every key of ``recipes/config/maml.yaml``; the yaml's comments say what each does."""
+
+    seed: int = integer(min=0)
+    device: str = device()
+    num_threads: int = integer(min=1)
+    env: EnvConfig = group(EnvConfig)
+    proposal: str = choice(PROPOSALS)
+    diayn_checkpoint: str = string()
+    num_skills: int | None = integer(min=2)
+    meta_batch_size: int | None = integer(min=1)
+    trajectories_per_task: int = integer(min=1)
+    iterations: int = integer(min=1)
+    policy: PolicyConfig = group(PolicyConfig)
+    maml: InnerConfig = group(InnerConfig)
+    advantage: AdvantageConfig = group(AdvantageConfig)
+    trpo: MetaTRPOConfig = group(MetaTRPOConfig)
+    checkpoint: CheckpointConfig = group(CheckpointConfig)
+    logger: RunLoggerConfig = group(RunLoggerConfig)
+    output_dir: str = string()
+    resume: bool = boolean()
+    progress: bool = boolean()
+
+    @staticmethod
+    def cross_check(cfg: dict) -> list[str]:
+        """``proposal=diayn`` needs an existing ``diayn_checkpoint``."""
+        if cfg["proposal"] != "diayn":
+            return []
+        try:
+            check_path_exists("diayn_checkpoint", cfg["diayn_checkpoint"])
+        except InvalidValue as e:
+            e.expected += " (a DIAYN run directory or step_*.pt file: proposal=diayn needs it)"
+            return [e.message()]
+        return []

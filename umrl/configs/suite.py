@@ -1,0 +1,234 @@
+"""Schema of ``benchmarks/config/suite.yaml`` and its profiles (the benchmark suite)."""
+# ruff: noqa: RUF009  (the field helpers of umrl.configs.validate return dataclasses.field(...) objects)
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+from umrl.configs.common import LoggerConfig
+from umrl.configs.diayn import DIAYNConfig
+from umrl.configs.maml import MAMLConfig
+from umrl.configs.validate import (
+    boolean,
+    check_partial,
+    checked,
+    choice_list,
+    int_list,
+    integer,
+    mapping,
+    number,
+    number_list,
+    string,
+)
+from umrl.configs.vime import VIMEConfig
+from umrl.envs import ENV_NAMES
+from umrl.metatest.methods import METHODS, PROPOSALS, Pretraining
+from umrl.metatest.protocol import SGD_SCHEDULES
+from umrl.runtime import Checkpointer
+from umrl.validation import InvalidType, InvalidValue, check_choice, check_int, check_list, check_str
+
+REPO = Path(__file__).resolve().parents[2]
+RECIPE_SCHEMAS = {"diayn": DIAYNConfig, "maml": MAMLConfig, "vime": VIMEConfig}
+"""The schema each ``pretrain.<recipe>.overrides`` is checked against."""
+MAML_METHODS = tuple(m.name for m in METHODS.values() if m.pretraining and m.pretraining.recipe == "maml")
+
+
+def check_recipe(name: str, value: Any) -> str:
+    """A recipe script path relative to the repository root (how the suite invokes it) that exists."""
+    check_str(name, value)
+    if not (REPO / value).is_file():
+        raise InvalidValue(name, value, "a recipe script relative to the repository root",
+                           note=f"{REPO / value} is not a file")
+    return value
+
+
+def check_reuse(name: str, value: Any) -> str | dict | None:
+    """``null``, a path template (``{env}``, ``{seed}``, ``{proposal}``) or (maml) a mapping proposal -> template."""
+    expected = "null, a path template with {env} {seed} {proposal}, or a mapping from proposal to template"
+    if value is None:
+        return None
+    if isinstance(value, str):
+        return _check_template(name, value)
+    if not isinstance(value, Mapping):
+        raise InvalidType(name, value, expected)
+    unknown = [k for k in value if k not in PROPOSALS]
+    if unknown:
+        raise InvalidValue(name, value, f"proposal keys from {', '.join(map(repr, PROPOSALS))}",
+                           note=f"unknown keys {unknown}")
+    for key, template in value.items():
+        if template is not None:
+            _check_template(f"{name}.{key}", template)
+    return dict(value)
+
+
+def check_sgd_schedule(name: str, value: Any) -> str | list[str]:
+    """One of :data:`~umrl.metatest.protocol.SGD_SCHEDULES` or a non-empty list of distinct ones."""
+    if isinstance(value, str):
+        return check_choice(name, value, SGD_SCHEDULES)
+    what = f"names from {', '.join(map(repr, SGD_SCHEDULES))}"
+    return check_list(name, value, partial(check_choice, choices=SGD_SCHEDULES), min_len=1, unique=True, what=what)
+
+
+def check_pretrain_seeds(name: str, value: Any) -> int | list[int] | None:
+    """``null`` (each meta-test seed's own), one int >= 0 (shared) or a list of ints >= 0 (one per seed)."""
+    if value is None or isinstance(value, int) and not isinstance(value, bool):
+        return value if value is None else check_int(name, value, min=0)
+    return check_list(name, value, partial(check_int, min=0), what="integers >= 0 (one per entry of seeds)")
+
+
+def _check_template(name: str, value: Any) -> str:
+    check_str(name, value)
+    try:
+        value.format(env="point_nav", seed=0, proposal="oracle")
+    except (KeyError, IndexError, ValueError) as e:
+        raise InvalidValue(name, value, "a path template using only {env}, {seed} and {proposal}",
+                           note=f"{type(e).__name__}: {e}") from None
+    return value
+
+
+@dataclass
+class ProtocolConfig:
+    """Meta-test protocol (``umrl.evaluation.AdaptationConfig``): K steps, trajectories per task and step..."""
+
+    num_steps: int = integer(min=1)
+    num_trajectories: int = integer(min=1)
+    horizon: int = integer(min=1)
+    gamma: float = number(ge=0, le=1)
+    lmbda: float = number(ge=0, le=1)
+    normalize_advantage: bool = boolean()
+    sgd_schedule: Any = checked(check_sgd_schedule)
+
+
+@dataclass
+class SweepConfig:
+    enabled: bool = boolean()
+    lrs: list[float] = number_list(min_len=1, gt=0)
+    num_tasks: int = integer(min=1)
+    num_steps: int = integer(min=1)
+
+
+@dataclass
+class PretrainConfig:
+    """One recipe's pre-training: its ``recipe`` script, ``reuse`` (finished runs used as they are: must hold a
+    checkpoint) and ``overrides`` (recipe keys, checked against the recipe's schema)."""
+
+    recipe: str = checked(check_recipe)
+    reuse: Any = checked(check_reuse)
+    overrides: dict[str, Any] = mapping()
+
+
+@dataclass
+class MAMLPretrainConfig(PretrainConfig):
+    """:class:`PretrainConfig` plus the maml recipe's key for the DIAYN run (``proposal=diayn``)."""
+
+    diayn_checkpoint_key: str = string()
+
+
+@dataclass
+class PretrainGroup:
+    diayn: PretrainConfig = field(default_factory=PretrainConfig)
+    maml: MAMLPretrainConfig = field(default_factory=MAMLPretrainConfig)
+    vime: PretrainConfig = field(default_factory=PretrainConfig)
+
+
+@dataclass
+class AblationConfig:
+    """Meta-test of kept MAML checkpoints: ``methods`` must be MAML methods of the suite's ``methods``."""
+
+    enabled: bool = boolean()
+    methods: list[str] = choice_list(MAML_METHODS)
+    seeds: list[int] = int_list(min=0, unique=True)
+    max_checkpoints: int = integer(min=1)
+    num_steps: int = integer(min=1)
+
+
+@dataclass
+class LauncherConfig:
+    """``workers`` (0: inline), torch ``threads`` per job, ``ray_address`` (null: local processes)."""
+
+    workers: int = integer(min=0)
+    threads: int = integer(min=1)
+    ray_address: str | None = string()
+
+
+@dataclass
+class ReportConfig:
+    steps: list[int] = int_list(min=0, unique=True)
+
+
+@dataclass
+class SuiteConfig:
+    """Every key of ``benchmarks/config/suite.yaml`` (after a profile); the yaml's comments say what each does."""
+
+    profile_name: str = string()
+    envs: list[str] = choice_list(ENV_NAMES, min_len=1)
+    methods: list[str] = choice_list(METHODS, min_len=1)
+    seeds: list[int] = int_list(min=0, min_len=1, unique=True)
+    pretrain_seeds: Any = checked(check_pretrain_seeds)
+    num_tasks: int = integer(min=1)
+    protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
+    sgd_lr: float | None = number(gt=0)
+    adam_lr: float = number(gt=0)
+    sweep: SweepConfig = field(default_factory=SweepConfig)
+    skill_trajectories: int = integer(min=1)
+    pretrain: PretrainGroup = field(default_factory=PretrainGroup)
+    ablation: AblationConfig = field(default_factory=AblationConfig)
+    launcher: LauncherConfig = field(default_factory=LauncherConfig)
+    report: ReportConfig = field(default_factory=ReportConfig)
+    logger: LoggerConfig = field(default_factory=LoggerConfig)
+    output_dir: str = string()
+
+    @staticmethod
+    def cross_check(cfg: dict) -> list[str]:
+        """Report steps within K, ablation methods among ``methods``, overrides against the recipes' schemas and
+        every ``reuse`` run the suite would use present."""
+        errors = []
+        pseeds = cfg["pretrain_seeds"]
+        if isinstance(pseeds, list) and len(pseeds) != len(cfg["seeds"]):
+            errors.append(InvalidValue("pretrain_seeds", pseeds, f"null, an integer >= 0 or a list of "
+                                       f"{len(cfg['seeds'])} integers >= 0 (one per seed in {cfg['seeds']})").message())
+        for i, step in enumerate(cfg["report"]["steps"]):
+            if step > cfg["protocol"]["num_steps"]:
+                errors.append(InvalidValue(f"report.steps[{i}]", step,
+                                           f"an integer <= protocol.num_steps ({cfg['protocol']['num_steps']})").message())
+        if cfg["ablation"]["enabled"]:
+            missing = [m for m in cfg["ablation"]["methods"] if m not in cfg["methods"]]
+            if missing:
+                errors.append(InvalidValue("ablation.methods", cfg["ablation"]["methods"],
+                                           f"methods also listed in methods ({', '.join(cfg['methods'])})",
+                                           note=f"{missing} would be skipped").message())
+        for recipe, schema in RECIPE_SCHEMAS.items():
+            errors += check_partial(cfg["pretrain"][recipe]["overrides"], schema, f"pretrain.{recipe}.overrides.")
+        return errors + _reuse_errors(cfg)
+
+
+def needed_pretraining(methods: list[str]) -> list[Pretraining]:
+    """The pre-training runs the suite's ``methods`` use, with the runs they read (sorted by kind)."""
+    runs = {METHODS[m].pretraining for m in methods} - {None}
+    runs |= {r for run in runs for r in run.requires}
+    return sorted(runs, key=lambda r: r.kind)
+
+
+def _reuse_errors(cfg: dict) -> list[str]:
+    """A ``reuse`` template the suite would use must point at runs holding a checkpoint for every (env, seed)."""
+    errors = []
+    seeds = cfg["pretrain_seeds"]
+    seeds = sorted(set(cfg["seeds"] if seeds is None else [seeds] if isinstance(seeds, int) else seeds))
+    for run in needed_pretraining(cfg["methods"]):
+        recipe, proposal = run.recipe, run.proposal
+        template, key = cfg["pretrain"][recipe]["reuse"], f"pretrain.{recipe}.reuse"
+        if isinstance(template, dict):
+            template, key = template.get(proposal), f"{key}.{proposal}"
+        if not template:
+            continue
+        for env in cfg["envs"]:
+            for seed in seeds:
+                run_dir = Path(template.format(env=env, seed=seed, proposal=proposal))
+                if Checkpointer(run_dir / "checkpoints").latest() is None:
+                    errors.append(InvalidValue(
+                        key, template, "a finished run directory holding checkpoints/step_*.pt",
+                        note=f"env={env} seed={seed}: {run_dir.absolute()} has no checkpoint").message())
+    return errors

@@ -1,0 +1,227 @@
+"""Argument checks shared by the Python API and the config schemas (:mod:`umrl.configs`).
+
+Each helper checks one property of one argument and returns the (normalised) value, or raises an error naming the
+argument, the bad value and what is accepted, in one format::
+
+    inner_lr: got nan; expected a finite number > 0
+
+Wrong types raise :class:`InvalidType` (a ``TypeError``), wrong values :class:`InvalidValue` (a ``ValueError``);
+both carry ``name``, ``value`` and ``expected`` so :func:`umrl.configs.validate` can gather many into one report.
+"""
+from __future__ import annotations
+
+import math
+import numbers
+from collections.abc import Callable, Collection, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+
+DEVICES = ("cpu", "cuda", "auto")
+
+
+def describe(value: Any, limit: int = 80) -> str:
+    """A short printable form of ``value`` for error messages (tensors by shape and dtype)."""
+    if isinstance(value, torch.Tensor) and value.numel() > 1:
+        return f"a tensor of shape {list(value.shape)} and dtype {value.dtype}"
+    text = repr(value.item() if isinstance(value, torch.Tensor) else value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+class _Invalid(Exception):
+    """``<name>: got <value>[ (<note>)]; expected <expected>``."""
+
+    def __init__(self, name: str, value: Any, expected: str, note: str | None = None):
+        self.name, self.value, self.expected, self.note = name, value, expected, note
+        super().__init__(self.message())
+
+    def message(self) -> str:
+        note = f" ({self.note})" if self.note else ""
+        return f"{self.name}: got {describe(self.value)}{note}; expected {self.expected}"
+
+
+class InvalidValue(_Invalid, ValueError):
+    """A value of an accepted type outside what is accepted."""
+
+
+class InvalidType(_Invalid, TypeError):
+    """A value of a type that is not accepted."""
+
+
+Invalid = (InvalidValue, InvalidType)
+
+
+def bounds_text(
+    gt: float | None = None, ge: float | None = None, lt: float | None = None, le: float | None = None
+) -> str:
+    """``"> 0"``, ``">= 1"``, ``"in (0, 1]"`` or ``""`` for the given bounds."""
+    low, low_open = (gt, True) if gt is not None else (ge, False)
+    high, high_open = (lt, True) if lt is not None else (le, False)
+    if low is not None and high is not None:
+        return f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+    if low is not None:
+        return f"{'>' if low_open else '>='} {low:g}"
+    if high is not None:
+        return f"{'<' if high_open else '<='} {high:g}"
+    return ""
+
+
+def _in_bounds(value: float, gt: float | None, ge: float | None, lt: float | None, le: float | None) -> bool:
+    return not ((gt is not None and value <= gt) or (ge is not None and value < ge)
+                or (lt is not None and value >= lt) or (le is not None and value > le))
+
+
+def check_int(name: str, value: Any, *, min: int | None = None, max: int | None = None) -> int:
+    """``value`` as an ``int`` (booleans and non-integral numbers are refused) within ``[min, max]``."""
+    expected = " ".join(["an integer", bounds_text(ge=min, le=max)]).strip()
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise InvalidType(name, value, expected)
+    if not _in_bounds(value, None, min, None, max):
+        raise InvalidValue(name, value, expected)
+    return int(value)
+
+
+def check_float(
+    name: str,
+    value: Any,
+    *,
+    gt: float | None = None,
+    ge: float | None = None,
+    lt: float | None = None,
+    le: float | None = None,
+) -> float:
+    """``value`` as a finite ``float`` (ints accepted, booleans refused) within the given bounds."""
+    expected = " ".join(["a finite number", bounds_text(gt=gt, ge=ge, lt=lt, le=le)]).strip()
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise InvalidType(name, value, expected)
+    if not math.isfinite(value) or not _in_bounds(value, gt, ge, lt, le):
+        raise InvalidValue(name, value, expected)
+    return float(value)
+
+
+def check_positive(name: str, value: Any) -> float:
+    """``value`` as a finite ``float`` > 0 (learning rates, step sizes, scales)."""
+    return check_float(name, value, gt=0)
+
+
+def check_probability(name: str, value: Any) -> float:
+    """``value`` as a finite ``float`` in [0, 1] (discounts, GAE lambda, fractions that may be 0 or 1)."""
+    return check_float(name, value, ge=0, le=1)
+
+
+def check_finite(name: str, value: Any) -> Any:
+    """``value`` (a number or a floating/integer tensor) with no NaN or infinite entry, returned unchanged."""
+    if not isinstance(value, torch.Tensor):
+        return check_float(name, value)
+    if value.is_complex() or value.dtype == torch.bool:
+        raise InvalidType(name, value, "a real-valued tensor")
+    bad = ~torch.isfinite(value)
+    if bad.any():
+        first = tuple(int(i) for i in bad.nonzero()[0])
+        raise InvalidValue(name, value, "finite values only",
+                           note=f"{int(bad.sum())} non-finite, first at index {first}: {value[first].item()}")
+    return value
+
+
+def check_bool(name: str, value: Any) -> bool:
+    """``value`` if it is a ``bool`` (``true``/``false`` in a config)."""
+    if not isinstance(value, bool):
+        raise InvalidType(name, value, "true or false")
+    return value
+
+
+def check_str(name: str, value: Any) -> str:
+    """``value`` if it is a non-empty ``str``."""
+    if not isinstance(value, str):
+        raise InvalidType(name, value, "a non-empty string")
+    if not value:
+        raise InvalidValue(name, value, "a non-empty string")
+    return value
+
+
+def check_choice(name: str, value: Any, choices: Collection) -> Any:
+    """``value`` if it is one of ``choices``."""
+    try:
+        accepted = value in choices
+    except TypeError:  # an unhashable value against a set or mapping of choices
+        accepted = False
+    if not accepted:
+        raise InvalidValue(name, value, f"one of {', '.join(repr(c) for c in choices)}")
+    return value
+
+
+def check_path_exists(name: str, value: Any) -> str:
+    """``value`` if it is a path (``str``) to an existing file or directory; relative paths are taken from the cwd."""
+    check_str(name, value)
+    if not Path(value).exists():
+        raise InvalidValue(name, value, "an existing file or directory", note=f"{Path(value).absolute()} does not exist")
+    return value
+
+
+def check_list(
+    name: str,
+    value: Any,
+    item: Callable[[str, Any], Any],
+    *,
+    min_len: int = 0,
+    unique: bool = False,
+    what: str = "items",
+) -> list:
+    """``value`` as a ``list`` whose entries pass ``item(f"{name}[i]", entry)``.
+
+    ``min_len`` and ``unique`` constrain the list; ``what`` names the entries in the message (``"integers >= 0"``).
+    """
+    expected = f"a {'non-empty ' if min_len == 1 else ''}list of {'distinct ' if unique else ''}{what}"
+    if min_len > 1:
+        expected += f" (at least {min_len})"
+    if isinstance(value, (str, bytes, Mapping)) or not isinstance(value, Sequence):
+        raise InvalidType(name, value, expected)
+    if len(value) < min_len:
+        raise InvalidValue(name, value, expected)
+    checked = [item(f"{name}[{i}]", entry) for i, entry in enumerate(value)]
+    if unique and len(set(map(repr, checked))) < len(checked):
+        raise InvalidValue(name, value, expected, note="repeated entries")
+    return checked
+
+
+def check_mapping(name: str, value: Any) -> dict:
+    """``value`` as a ``dict`` with string keys (free-form settings such as Hydra overrides)."""
+    if not isinstance(value, Mapping) or not all(isinstance(k, str) for k in value):
+        raise InvalidType(name, value, "a mapping with string keys")
+    return dict(value)
+
+
+def resolve_device(name: str, value: Any) -> str:
+    """``"cpu"`` or ``"cuda"`` for a device setting in :data:`DEVICES`; ``"auto"`` picks CUDA when available.
+
+    ``"cuda"`` without a CUDA device is refused (the choices that work here are ``cpu`` and ``auto``).
+    """
+    check_choice(name, value, DEVICES)
+    cuda = torch.cuda.is_available()
+    if value == "cuda" and not cuda:
+        raise InvalidValue(name, value, "one of 'cpu', 'auto'", note="no CUDA device is available on this machine")
+    if value == "auto":
+        return "cuda" if cuda else "cpu"
+    return value
+
+
+__all__ = [
+    "DEVICES",
+    "Invalid",
+    "InvalidType",
+    "InvalidValue",
+    "bounds_text",
+    "check_bool",
+    "check_choice",
+    "check_finite",
+    "check_float",
+    "check_int",
+    "check_list",
+    "check_mapping",
+    "check_path_exists",
+    "check_positive",
+    "check_probability",
+    "check_str",
+    "resolve_device",
+]
