@@ -1,82 +1,180 @@
-"""Seconds per MAML meta-iteration, split into collection and learning, against pure env stepping.
+"""Seconds per MAML meta-iteration, split into collection and learning, against the learning step's arithmetic floor.
 
-    python benchmarks/meta_iteration.py                          # point_nav, paper settings (50 tasks x 40 x 100)
-    python benchmarks/meta_iteration.py --env half_cheetah       # 20 tasks x 40 x 100
-    python benchmarks/meta_iteration.py --hvp-fraction 0.1 --repeats 3
-    python benchmarks/meta_iteration.py --override maml.task_loop=true   # any recipes/config/maml.yaml key
+    python benchmarks/meta_iteration.py --preset reference           # point_nav 40 tasks x 20 x 100, 2x100, lr 0.5
+    python benchmarks/meta_iteration.py --preset paper               # point_nav 50 x 40 x 100, 2x300, lr 0.1
+    python benchmarks/meta_iteration.py --preset half_cheetah        # 20 x 40 x 100, 2x300
+    python benchmarks/meta_iteration.py --preset reference --task-loop batched loop   # variants, interleaved
+    python benchmarks/meta_iteration.py --device auto --threads 16 --hvp-fraction 0.1 --repeats 5
 
-One meta-iteration is exactly the recipe's (``recipes/maml.py: meta_iteration``, oracle proposal): pre-update and
-post-update collection with per-task parameters, advantages included ("collect"); the inner adaptation that gives
-the post-update parameters plus the TRPO meta-step with KL Hessian-vector products through the inner step ("learn",
-with the inner step also shown alone). "env only" steps the same env for the same number of
-steps (2 × T × N × H) with random actions and no policy, in the same process, interleaved with the iterations.
-Prints the median of ``--repeats`` runs of each; on a shared machine compare ratios measured in the same run.
+One meta-iteration is the MAML recipe's (oracle tasks, Gauss-Newton KL Hessian-vector products through the inner
+step), built here from umrl's pieces: pre-update collection with θ and advantages, the inner adaptation (with the
+graph the meta-step reuses), post-update collection with every task's adapted parameters ("collect" = both
+collections and advantages), then the TRPO meta-step ("learn" = inner adaptation + TRPO step).
+
+The **arithmetic floor** is the learning step's matmul FLOPs (``torch.utils.flop_counter.FlopCounterMode`` over one
+untimed warm-up step) divided by the device's matmul rate, measured in the same run with one large ``torch.mm`` at
+the configured thread count; ``learn / floor`` is how far the step is from that bound. Each ``--task-loop`` variant
+(``batched``: one batched matmul per layer for all tasks; ``loop``: a Python loop over tasks; ``vmap``) gets its own
+policy from the same seed, so all variants do the same work; their iterations are interleaved and the medians of
+``--repeats`` runs are printed with same-run ratios. ``--metrics`` prints every iteration's TRPO numbers in full
+precision (same seed, same numbers: compare before/after a change).
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
+import json
 import statistics
-import sys
 import time
-from pathlib import Path
 
 import torch
-from hydra import compose, initialize_config_dir
+from torch.utils.flop_counter import FlopCounterMode
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "recipes"))
-from maml import build, meta_iteration
-
+from umrl.envs import get_task_family, make_task_env
+from umrl.modules.policy import make_gaussian_policy
+from umrl.objectives.maml import MAMLLoss
+from umrl.objectives.policy_gradient import compute_advantages
+from umrl.optim.trpo import TRPOStep
+from umrl.rollout import collect
 from umrl.runtime import seed_everything
 
-DEFAULT_TASKS = {"point_nav": 50, "half_cheetah": 20, "ant": 20}
+_KEYS = ("env", "tasks", "trajectories", "horizon", "hidden", "inner_lr")
+PRESETS = {name: dict(zip(_KEYS, values)) for name, values in {
+    "reference": ("point_nav", 40, 20, 100, (100, 100), 0.5),
+    "paper": ("point_nav", 50, 40, 100, (300, 300), 0.1),
+    "half_cheetah": ("half_cheetah", 20, 40, 100, (300, 300), 0.1),
+}.items()}
+TASK_LOOP = {"batched": None, "loop": True, "vmap": False}
+
+
+def resolve_device(name: str) -> torch.device:
+    """``cpu``, ``cuda`` or ``auto`` (cuda if available); ``cuda`` without a GPU fails here, naming the choices."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise SystemExit("--device cuda: no CUDA device is available here; use --device cpu or --device auto.")
+    return torch.device(name)
+
+
+def sync(device: torch.device) -> float:
+    """Wait for queued device work, then read the clock."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    return time.perf_counter()
+
+
+def matmul_rate(device: torch.device, size: int, repeats: int = 5) -> float:
+    """Median FLOP/s of a ``size``² float32 ``torch.mm`` on ``device`` at the current thread count."""
+    a, b = (torch.randn(size, size, device=device) for _ in range(2))
+    torch.mm(a, b)
+    times = []
+    for _ in range(repeats):
+        start = sync(device)
+        torch.mm(a, b)
+        times.append(sync(device) - start)
+    return 2 * size**3 / statistics.median(times)
+
+
+class Variant:
+    """One policy/loss/TRPO triple and its meta-iterations (the recipe's, oracle proposal)."""
+
+    def __init__(self, args, device: torch.device, task_loop: bool | None):
+        self.args, self.device = args, device
+        self.generator = seed_everything(args.seed)  # same init, tasks and data for every variant
+        self.family = get_task_family(args.env)
+        n = args.trajectories
+        tasks = self.family.sample(args.tasks, torch.Generator().manual_seed(args.seed))
+        self.env = make_task_env(args.env, tasks.repeat_interleave(n, 0), seed=args.seed, horizon=args.horizon,
+                                 device=device)
+        obs_dim, act_dim = self.env.observation_spec["observation"].shape[-1], self.env.action_spec.shape[-1]
+        self.policy = make_gaussian_policy(obs_dim, act_dim, hidden=args.hidden).to(device)
+        self.loss = MAMLLoss(self.policy, inner_lr=args.inner_lr, task_loop=task_loop)
+        self.trpo = TRPOStep(self.loss.params)
+        self.rng_state = torch.get_rng_state()
+
+    def _collect(self, params=None):
+        td = collect(self.env, self.policy, num_tasks=self.args.tasks, horizon=self.args.horizon, params=params)
+        return compute_advantages(td)
+
+    def iteration(self, flops: FlopCounterMode | None = None) -> dict[str, float]:
+        """One meta-iteration; with ``flops`` the learning step runs under that counter."""
+        torch.set_rng_state(self.rng_state)  # variants share the global RNG: each continues its own stream
+        tasks = self.family.sample(self.args.tasks, self.generator)
+        self.env.transform[-1].set_tasks(tasks.repeat_interleave(self.args.trajectories, 0).to(self.device))
+        start = sync(self.device)
+        support = self._collect()
+        inner_start = sync(self.device)
+        with torch.enable_grad(), flops or contextlib.nullcontext():
+            adapted = self.loss.adapt(support)
+        inner_s = sync(self.device) - inner_start
+        query = self._collect(adapted.detach())
+        collected = sync(self.device)
+        with flops or contextlib.nullcontext():
+            info = self.step(support, query, adapted)
+        learned = sync(self.device)
+        self.rng_state = torch.get_rng_state()
+        return {**info, "collect_s": collected - start - inner_s, "learn_s": learned - collected + inner_s}
+
+    def step(self, support, query, adapted) -> dict[str, float]:
+        """The TRPO meta-step through the inner step (the recipe's default ``trpo.hvp=gauss_newton``)."""
+        loss, fraction, generator = self.loss, self.args.hvp_fraction, self.generator
+        with torch.enable_grad():
+            initial = loss.objective_and_kl(support, query, phi=adapted)
+        return self.trpo(lambda: loss.objective_and_kl(support, query), initial=initial,
+                         hvp=lambda: loss.gauss_newton_hvp(support, query, fraction=fraction, generator=generator))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--env", default="point_nav", choices=sorted(DEFAULT_TASKS))
-    parser.add_argument("--tasks", type=int, default=None, help="meta-batch (default: PROTOCOL.md's 50/20/20)")
-    parser.add_argument("--trajectories", type=int, default=40)
-    parser.add_argument("--horizon", type=int, default=100)
+    parser.add_argument("--preset", default="paper", choices=sorted(PRESETS))
+    parser.add_argument("--tasks", type=int, help="override the preset's meta-batch")
+    parser.add_argument("--trajectories", type=int, help="override the preset's trajectories per task")
     parser.add_argument("--hvp-fraction", type=float, default=1.0)
-    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--task-loop", nargs="+", default=["batched"], choices=sorted(TASK_LOOP))
+    parser.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--override", action="append", default=[], help="extra maml.yaml override, repeatable")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--metrics", action="store_true", help="print each iteration's TRPO numbers in full")
     args = parser.parse_args()
-    tasks = args.tasks or DEFAULT_TASKS[args.env]
-    overrides = [f"env.name={args.env}", f"meta_batch_size={tasks}", f"trajectories_per_task={args.trajectories}",
-                 f"env.horizon={args.horizon}", f"trpo.hvp_fraction={args.hvp_fraction}", "proposal=oracle",
-                 f"num_threads={args.threads}", "logger.backend=none", *args.override]
-    with initialize_config_dir(config_dir=str(REPO / "recipes" / "config"), version_base="1.3"):
-        cfg = compose("maml", overrides=overrides)
+    for key, value in PRESETS[args.preset].items():
+        if getattr(args, key, None) is None:
+            setattr(args, key, value)
+    device = resolve_device(args.device)
     torch.set_num_threads(args.threads)
-    generator = seed_everything(cfg.seed)  # same policy init and data in every run: variants do the same work
-    proposal, policy, loss, trpo = build(cfg)
-    env = proposal.env
-    steps = 2 * env.batch_size.numel() * args.horizon
-    rows = {"env_only_s": [], "collect_s": [], "learn_s": [], "inner_s": []}
+
+    variants = {name: Variant(args, device, TASK_LOOP[name]) for name in args.task_loop}
+    flops = {}
+    for name, variant in variants.items():  # warm-up iteration, FLOPs counted (not timed)
+        counter = FlopCounterMode(display=False)
+        info = variant.iteration(counter)
+        flops[name] = counter.get_total_flops()
+        if args.metrics:
+            print(f"  {name} warm-up: {json.dumps(info)}", flush=True)
+    rate = matmul_rate(device, 4096 if device.type == "cuda" else 2048)
+    rows = {name: {"collect_s": [], "learn_s": []} for name in variants}
     for _ in range(args.repeats):
-        start = time.perf_counter()
-        with torch.no_grad():
-            for _ in range(2):
-                env.rollout(args.horizon, break_when_any_done=False)
-        rows["env_only_s"].append(time.perf_counter() - start)
-        metrics = meta_iteration(cfg, proposal, policy, loss, trpo, generator)
-        rows["collect_s"].append(metrics["time/collect_s"])
-        rows["learn_s"].append(metrics["time/learn_s"])
-        rows["inner_s"].append(metrics["time/inner_s"])
-        print(f"  run: env only {rows['env_only_s'][-1]:.2f}s  collect {metrics['time/collect_s']:.2f}s  "
-              f"learn {metrics['time/learn_s']:.2f}s  (backtracks {metrics['train/backtracks']:.0f}, "
-              f"kl {metrics['train/kl']:.4f})", flush=True)
-    med = {k: statistics.median(v) for k, v in rows.items()}
-    print(f"\n{args.env}: {tasks} tasks x {args.trajectories} traj x {args.horizon} steps = {steps} env steps "
-          f"(pre + post), hvp_fraction {args.hvp_fraction}, {args.threads} thread(s), median of {args.repeats}")
-    print(f"  env only   {med['env_only_s']:8.2f} s   ({steps / med['env_only_s']:,.0f} steps/s)")
-    print(f"  collect    {med['collect_s']:8.2f} s   ({steps / med['collect_s']:,.0f} steps/s, "
-          f"{med['collect_s'] / med['env_only_s']:.2f}x env only)")
-    print(f"  learn      {med['learn_s']:8.2f} s   ({med['learn_s'] / med['collect_s']:.2f}x collect; inner step "
-          f"{med['inner_s']:.2f} s)")
-    print(f"  total      {med['collect_s'] + med['learn_s']:8.2f} s per meta-iteration")
+        for name, variant in variants.items():
+            info = variant.iteration()
+            rows[name]["collect_s"].append(info["collect_s"])
+            rows[name]["learn_s"].append(info["learn_s"])
+            print(f"  run {name}: collect {info['collect_s']:.2f}s  learn {info['learn_s']:.2f}s  "
+                  f"(backtracks {info['backtracks']:.0f}, kl {info['kl']:.5f})", flush=True)
+            if args.metrics:
+                print(f"    {json.dumps(info)}", flush=True)
+    steps = 2 * args.tasks * args.trajectories * args.horizon
+    print(f"\n{args.preset}: {args.env} {args.tasks} tasks x {args.trajectories} traj x {args.horizon} steps "
+          f"({steps} env steps pre + post), hidden {list(args.hidden)}, inner lr {args.inner_lr}, hvp_fraction "
+          f"{args.hvp_fraction}, {device}, {args.threads} thread(s), median of {args.repeats}; matmul rate "
+          f"{rate / 1e9:,.1f} GFLOP/s")
+    first = None
+    for name, row in rows.items():
+        collect_s, learn_s = statistics.median(row["collect_s"]), statistics.median(row["learn_s"])
+        floor = flops[name] / rate
+        first = first or learn_s
+        print(f"  {name:8s} collect {collect_s:7.2f} s  learn {learn_s:7.2f} s  learn/collect {learn_s / collect_s:5.2f}"
+              f"  floor {floor:6.2f} s ({flops[name] / 1e9:,.0f} GFLOP)  learn/floor {learn_s / floor:5.2f}"
+              f"  learn vs {args.task_loop[0]} {learn_s / first:5.2f}x")
 
 
 if __name__ == "__main__":

@@ -6,8 +6,8 @@ copies, e.g. ``make_task_env(name, tasks.repeat_interleave(N, 0))``). :func:`col
 network call per env step**:
 
 * shared parameters (pre-update): the policy is called on the whole ``[B]`` batch;
-* per-task parameters ``[T, ...]`` (post-update): the observation batch is viewed as ``[T, N]`` and the network runs
-  under ``torch.func.vmap(functional_call)`` over the task dim — every task's adapted weights in one call.
+* per-task parameters ``[T, ...]`` (post-update): the observation batch is viewed as ``[T, N]`` and every task's
+  adapted weights run in one batched matmul per layer (:class:`FunctionalPolicy`).
 
 ``env.rollout`` is the simplest correct driver here: every copy runs exactly ``horizon`` steps in lockstep, which is
 what a ``[T, N, H]`` batch needs, and it adds no process or buffer machinery a ``Collector`` would bring (measured:
@@ -25,6 +25,7 @@ from torch.func import functional_call
 from torchrl.envs import EnvBase, ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor
 
+from umrl.modules.batched_mlp import BatchedGaussianMLP
 from umrl.objectives.policy_gradient import trajectory_mask
 
 __all__ = ["FunctionalPolicy", "collect"]
@@ -35,26 +36,28 @@ class FunctionalPolicy:
 
     ``params`` is either shared (batch size ``[]``, e.g. ``TensorDict.from_module(policy)``) or per task (batch size
     ``[T]``, e.g. from :meth:`umrl.objectives.maml.MAMLLoss.adapt`). With per-task params the data's leading dim
-    must be ``T``. Calls go through ``torch.func.functional_call``; the module's own parameters are never touched.
+    must be ``T``. The module's own parameters are never touched.
 
     Args:
         policy: the actor; its last module must be the probabilistic head (``loc``/``scale`` -> distribution).
 
     Keyword Args:
-        task_loop: how per-task params are evaluated: ``True`` a Python loop over tasks, ``False`` one
-            ``vmap`` call, ``None`` (default) the faster of the two by the per-task batch size: the loop from
-            ``LOOP_MIN_PER_TASK`` samples per task up (measured on CPU, 2×300 MLP: at 4000 samples per task the loop
-            ran the inner step ~1.4× faster than vmap; at 400 per task, e.g. subsampled Hessian-vector products or
-            one env step of collection, vmap was ~1.7× faster). Results agree to float rounding either way.
+        task_loop: how per-task params are evaluated: ``None`` (default) all tasks at once with one batched matmul
+            per layer (:class:`umrl.modules.batched_mlp.BatchedGaussianMLP`; networks it does not recognise use
+            ``vmap``), ``False`` one ``torch.func.vmap(functional_call)``, ``True`` a Python loop of
+            ``functional_call`` over tasks (the per-task reference). Results agree to float rounding (tested).
+            Measured on 2 CPU cores (``benchmarks/meta_iteration.py``, 2×100 MLP, 2000 samples per task): the
+            batched form ran the MAML learning step several times faster than either of the others.
     """
 
-    LOOP_MIN_PER_TASK = 1000
-
     def __init__(self, policy: ProbabilisticActor, *, task_loop: bool | None = None):
+        if task_loop not in (None, True, False):
+            raise ValueError(f"task_loop must be None (batched), True (loop) or False (vmap), got {task_loop!r}.")
         self.policy = policy
         self.net = TensorDictSequential(*policy.module[:-1])  # shares the modules: same parameter names
         self.head = policy.module[-1]
         self.task_loop = task_loop
+        self.batched = BatchedGaussianMLP.from_net(self.net) if task_loop is None else None
 
     @staticmethod
     def _flat(params: TensorDictBase) -> dict[str, torch.Tensor]:
@@ -73,8 +76,10 @@ class FunctionalPolicy:
                 f"per-task params have batch size {tuple(params.batch_size)} but the data's leading dims are "
                 f"{tuple(td.batch_size)}: the data must be shaped [T, ...] with T = number of tasks."
             )
-        loop = self.task_loop if self.task_loop is not None else td.batch_size[1:].numel() >= self.LOOP_MIN_PER_TASK
-        if loop:
+        if self.batched is not None:
+            loc, scale = self.batched(params, [inputs.get(k) for k in self.net.in_keys])
+            return inputs.set("loc", loc).set("scale", scale)
+        if self.task_loop:
             return torch.stack([self._call(self._flat(params[i]), inputs[i]) for i in range(params.shape[0])])
         return torch.func.vmap(self._call, (0, 0), randomness="error")(self._flat(params), inputs)
 

@@ -197,8 +197,9 @@ class MAMLLoss(LossModule):
         if fraction == 1:
             return support, query
         n = support.shape[1]
-        idx = torch.randperm(n, generator=generator)[: max(1, math.ceil(fraction * n))]
-        return support[:, idx], query[:, idx]
+        device = generator.device if generator is not None else support.device  # randperm runs where the generator is
+        idx = torch.randperm(n, generator=generator, device=device)[: max(1, math.ceil(fraction * n))]
+        return support[:, idx.to(support.device)], query[:, idx.to(query.device)]
 
     def gauss_newton_hvp(
         self,
