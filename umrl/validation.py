@@ -21,7 +21,7 @@ import torch
 DEVICES = ("cpu", "cuda", "auto")
 
 
-def describe(value: Any, limit: int = 80) -> str:
+def describe(value: Any, limit: int = 240) -> str:
     """A short printable form of ``value`` for error messages (tensors by shape and dtype)."""
     if isinstance(value, torch.Tensor) and value.numel() > 1:
         return f"a tensor of shape {list(value.shape)} and dtype {value.dtype}"

@@ -1,0 +1,194 @@
+"""umrl.configs: every yaml config matches its schema, defaults validate, and each class of bad input is one clear
+error naming the key, the bad value and what is accepted (before any work starts)."""
+import dataclasses
+import math
+import typing
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+from script_loading import REPO, compose_config
+
+from umrl.configs import ConfigError, check_resume, resume_diff, validate
+from umrl.configs.diayn import DIAYNConfig
+from umrl.configs.maml import MAMLConfig
+from umrl.configs.suite import SuiteConfig
+from umrl.configs.validate import check_partial
+from umrl.configs.vime import VIMEConfig
+
+RECIPES = {"diayn": DIAYNConfig, "maml": MAMLConfig, "vime": VIMEConfig}
+SCHEMAS = {**RECIPES, "suite": SuiteConfig}
+PROFILES = sorted(p.stem for p in (REPO / "benchmarks/config/profile").glob("*.yaml"))
+
+
+def compose(name: str, overrides=()):
+    if name == "suite":
+        return compose_config("benchmarks/config", "suite", overrides)
+    return compose_config("recipes/config", name, overrides)
+
+
+def schema_keys(schema: type, prefix: str = "") -> set[str]:
+    hints = typing.get_type_hints(schema)
+    keys = set()
+    for f in dataclasses.fields(schema):
+        if dataclasses.is_dataclass(hints[f.name]):
+            keys |= schema_keys(hints[f.name], f"{prefix}{f.name}.")
+        else:
+            keys.add(f"{prefix}{f.name}")
+    return keys
+
+
+def yaml_keys(node, schema: type, prefix: str = "") -> set[str]:
+    """Dotted keys of a yaml mapping, descending where the schema has a group (open mappings are leaves)."""
+    hints = typing.get_type_hints(schema)
+    keys = set()
+    for key, value in node.items():
+        sub = hints.get(key)
+        if sub is not None and dataclasses.is_dataclass(sub) and isinstance(value, dict):
+            keys |= yaml_keys(value, sub, f"{prefix}{key}.")
+        else:
+            keys.add(f"{prefix}{key}")
+    return keys
+
+
+def load_yaml(relative: str) -> dict:
+    raw = OmegaConf.to_container(OmegaConf.load(REPO / relative))
+    return {k: v for k, v in raw.items() if k not in ("hydra", "defaults")}
+
+
+@pytest.mark.parametrize("name", list(SCHEMAS))
+def test_yaml_keys_equal_schema_keys(name):
+    path = "benchmarks/config/suite.yaml" if name == "suite" else f"recipes/config/{name}.yaml"
+    assert yaml_keys(load_yaml(path), SCHEMAS[name]) == schema_keys(SCHEMAS[name])
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+def test_profile_keys_are_schema_keys_with_valid_values(profile):
+    values = load_yaml(f"benchmarks/config/profile/{profile}.yaml")
+    assert yaml_keys(values, SuiteConfig) <= schema_keys(SuiteConfig)
+    assert check_partial(values, SuiteConfig) == []
+
+
+@pytest.mark.parametrize("name,overrides", [
+    *[(recipe, [f"env.name={env}"]) for recipe in RECIPES for env in ("point_nav", "half_cheetah", "ant")],
+    *[("suite", [f"profile={profile}"]) for profile in PROFILES],
+])
+def test_default_configs_validate(name, overrides):
+    cfg = validate(compose(name, overrides), SCHEMAS[name])
+    assert OmegaConf.is_config(cfg)
+    if name != "suite":
+        assert cfg.env.name in cfg.output_dir  # interpolations resolved
+        assert cfg.device == "cpu"
+
+
+def test_validated_config_is_typed_and_resolves_auto_device():
+    cfg = validate(compose("maml", ["device=auto", "trpo.max_kl=1"]), MAMLConfig)
+    assert cfg.device == ("cuda" if torch.cuda.is_available() else "cpu")
+    assert isinstance(cfg.trpo.max_kl, float)
+    with pytest.raises(Exception, match="iterations"):
+        cfg.iterations = "abc"
+    with pytest.raises(Exception, match="iteratons"):
+        cfg.iteratons = 5
+
+
+NO_GPU = pytest.mark.skipif(torch.cuda.is_available(), reason="device=cuda is valid with a GPU")
+
+
+@pytest.mark.parametrize("name,overrides,line", [
+    # silent before: ran with a default, ignored the value or did nothing
+    ("diayn", ["num_skills=0"], "num_skills: got 0; expected null or an integer >= 2"),
+    pytest.param("maml", ["device=cuda"], "device: got 'cuda' (no CUDA device is available on this machine); "
+                 "expected one of 'cpu', 'auto'", marks=NO_GPU),
+    ("maml", ["iterations=-5"], "iterations: got -5; expected an integer >= 1"),
+    ("vime", ["coverage.cell_size=0"], "coverage.cell_size: got 0; expected null or a finite number > 0"),
+    ("suite", ["launcher.workers=-1"], "launcher.workers: got -1; expected an integer >= 0"),
+    ("maml", ["maml.inner_lr=nan"], "maml.inner_lr: got nan; expected a finite number > 0"),
+    ("maml", ["proposal=diayn", "diayn_checkpoint=/no/such/run"],
+     "diayn_checkpoint: got '/no/such/run' (/no/such/run does not exist); expected an existing file or directory "
+     "(a DIAYN run directory or step_*.pt file: proposal=diayn needs it)"),
+    # obscure before: a crash far from the cause
+    ("diayn", ["checkpoint.every=0"], "checkpoint.every: got 0; expected an integer >= 1"),
+    ("maml", ["checkpoint.every=0"], "checkpoint.every: got 0; expected an integer >= 1"),
+    ("maml", ["iterations=abc"], "iterations: got 'abc'; expected an integer >= 1"),
+    ("vime", ["iterations=2.5"], "iterations: got 2.5; expected an integer >= 1"),
+    ("diayn", ["optim.lr=fast"], "optim.lr: got 'fast'; expected a finite number > 0"),
+    ("diayn", ["resume=maybe"], "resume: got 'maybe'; expected true or false"),
+    ("suite", ["seeds=[]"], "seeds: got []; expected a non-empty list of distinct integers >= 0"),
+    ("suite", ["seeds=[0,-1]"], "seeds[1]: got -1; expected an integer >= 0"),
+    # more ranges and choices
+    ("maml", ["trpo.hvp_fraction=1.5"], "trpo.hvp_fraction: got 1.5; expected a finite number in (0, 1]"),
+    ("maml", ["trpo.hvp=fisher"], "trpo.hvp: got 'fisher'; expected one of 'gauss_newton', 'exact'"),
+    ("maml", ["policy.hidden=[]"], "policy.hidden: got []; expected a non-empty list of integers >= 1"),
+    ("vime", ["env.name=walker"], "env.name: got 'walker'; expected one of 'point_nav', 'half_cheetah', 'ant'"),
+    ("vime", ["logger.backend=tensorboard"], "logger.backend: got 'tensorboard'; expected one of 'wandb', 'csv', "
+     "'none'"),
+    ("vime", ["dynamics.holdout_fraction=1"], "dynamics.holdout_fraction: got 1; expected a finite number in (0, 1)"),
+    ("diayn", ["collector.frames_per_batch=1601"],
+     "collector.frames_per_batch: got 1601; expected a multiple of env.num_envs (16)"),
+    ("suite", ["methods=[scratch,sac]"], "methods[1]: got 'sac'; expected one of 'uml_diayn', 'uml_random', "
+     "'oracle', 'vime_init', 'diayn_init', 'scratch'"),
+    ("suite", ["protocol.num_steps=3"], "report.steps[2]: got 5; expected an integer <= protocol.num_steps (3)"),
+    ("suite", ["++pretrain.maml.overrides.iterations=-5"],
+     "pretrain.maml.overrides.iterations: got -5; expected an integer >= 1"),
+    ("suite", ["+pretrain.vime.overrides.itrations=5"],
+     "pretrain.vime.overrides.itrations: unexpected key; expected one of the keys of VIMEConfig"),
+])
+def test_bad_input_is_one_clear_error(name, overrides, line):
+    with pytest.raises(ConfigError) as info:
+        validate(compose(name, overrides), SCHEMAS[name])
+    assert any(e.startswith(line) for e in info.value.errors), info.value.errors
+    assert line.split(";")[0] in str(info.value)
+
+
+def test_missing_reuse_path_is_refused_before_any_work(tmp_path):
+    template = str(tmp_path / "maml_{proposal}" / "seed{seed}")
+    cfg = compose("suite", ["profile=quick", f"pretrain.maml.reuse='{template}'"])
+    with pytest.raises(ConfigError) as info:
+        validate(cfg, SuiteConfig)
+    run = tmp_path / "maml_diayn" / "seed0"
+    assert (f"pretrain.maml.reuse: got '{template}' (env=point_nav seed=0: {run} has no checkpoint); "
+            "expected a finished run directory holding checkpoints/step_*.pt") in info.value.errors
+    for proposal in ("diayn", "random", "oracle"):  # a run with a checkpoint is accepted
+        (tmp_path / f"maml_{proposal}" / "seed0" / "checkpoints").mkdir(parents=True)
+        (tmp_path / f"maml_{proposal}" / "seed0" / "checkpoints" / "step_20.pt").touch()
+    validate(cfg, SuiteConfig)
+
+
+def test_every_bad_key_is_listed_in_one_error():
+    overrides = ["iterations=-5", "seed=abc", "trpo.max_kl=0", "env.name=mars", "+itrations=3"]
+    with pytest.raises(ConfigError) as info:
+        validate(compose("maml", overrides), MAMLConfig)
+    keys = sorted(e.split(":")[0] for e in info.value.errors)
+    assert keys == ["env.name", "iterations", "itrations", "seed", "trpo.max_kl"]
+    assert str(info.value).startswith("invalid config (MAMLConfig, 5 errors):")
+
+
+def test_missing_and_unreadable_keys_are_named():
+    values = OmegaConf.to_container(compose("vime"))
+    del values["trpo"]["cg_iters"]
+    values["output_dir"] = "${nowhere}"
+    with pytest.raises(ConfigError) as info:
+        validate(values, VIMEConfig)
+    assert "trpo.cg_iters: missing; VIMETRPOConfig requires it" in info.value.errors
+    assert any(e.startswith("output_dir: cannot be read (InterpolationKeyError") for e in info.value.errors)
+
+
+def test_resume_diff_lists_changed_keys_except_the_allow_list():
+    saved = validate(compose("maml"), MAMLConfig)
+    same = validate(compose("maml", ["iterations=1000", "logger.backend=csv", "progress=false", "resume=true",
+                                     "checkpoint.every=3", "output_dir=/elsewhere"]), MAMLConfig)
+    assert resume_diff(saved, same) == {}
+    check_resume(saved, same)
+    changed = validate(compose("maml", ["seed=5", "trpo.max_kl=0.5", "policy.hidden=[64,64]", "num_skills=7",
+                                        "env.name=half_cheetah"]), MAMLConfig)
+    diff = resume_diff(OmegaConf.to_container(saved), changed)
+    assert diff == {"seed": (0, 5), "trpo.max_kl": (0.01, 0.5), "policy.hidden": ([300, 300], [64, 64]),
+                    "num_skills": (None, 7), "env.name": ("point_nav", "half_cheetah"),
+                    "diayn_checkpoint": ("outputs/diayn/point_nav/seed0", "outputs/diayn/half_cheetah/seed5")}
+    with pytest.raises(ConfigError, match=r"trpo\.max_kl: checkpoint has 0\.01, this run has 0\.5"):
+        check_resume(saved, changed)
+
+
+def test_resume_diff_marks_keys_present_on_one_side():
+    assert resume_diff({"a": 1, "b": {"c": 2}}, {"a": 1}, allow=()) == {"b.c": (2, "<absent>")}
+    assert resume_diff({"a": 1}, {"a": 1, "d": math.pi}, allow=("d",)) == {}
