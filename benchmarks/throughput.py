@@ -19,6 +19,13 @@ Rows, per env and batch size ``B`` (policy = the 2x300 Gaussian MLP of :mod:`umr
   vector env stepped bare (random actions, no policy), the ``gym`` backend and the ``batched`` backend with the
   policy (``env.rollout``), and the batched backend alone (random actions); with ``--per-core``, also
   ``mujoco.rollout`` and the batched env on one thread each (per-core efficiency, free of thread scaling).
+
+``--scaling`` prints a thread-scaling table instead, for half_cheetah and ant at ``B = --scaling-batch`` (800): at
+1, 2, 4, 8, 16 threads (up to the usable CPUs, or the ``--threads`` list) the physics limit (``mujoco.rollout`` open
+loop on that many threads), the batched backend alone (random actions) and with the 2x300 policy (``env.rollout``,
+torch on the same number of threads), and their ratios to the limit; then the time to collect one paper-settings
+half_cheetah meta-iteration (20 tasks x 40 trajectories x 100 steps, pre- and post-update: 160 k env steps) through
+:func:`umrl.rollout.collect` with per-task parameters, on all the threads.
 """
 
 from __future__ import annotations
@@ -36,12 +43,15 @@ import mujoco
 import mujoco.rollout
 import numpy as np
 import torch
+from tensordict import TensorDict
 from torchrl.collectors import Collector
+from torchrl.envs import StepCounter, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from umrl.envs import make_env
 from umrl.envs.mujoco_batched import BATCHED_ENVS, MODEL_SPECS
 from umrl.modules.policy import make_gaussian_policy
+from umrl.rollout import collect
 
 warnings.filterwarnings("ignore", message=".*settotalmass.*")
 
@@ -300,6 +310,70 @@ def format_table(benches: list[Bench], rates: dict[int, list[float]]) -> str:
     return "\n".join(lines)
 
 
+def _batched(name: str, batch: int, steps: int, threads: int, with_policy: bool):
+    """The batched backend on ``threads`` threads (torch too), ``env.rollout`` with or without the policy."""
+
+    def setup():
+        env = BATCHED_ENVS[name](batch, seed=0, num_threads=threads)
+        policy = _policy(env) if with_policy else None
+
+        def run() -> int:
+            torch.set_num_threads(threads)
+            env.rollout(steps, policy, break_when_any_done=False)
+            return batch * steps
+
+        return run
+
+    return setup
+
+
+def scaling_table(args, repeats: int) -> str:
+    """Thread-scaling rows per (env, threads): physics limit, batched alone, batched + policy, ratios."""
+    batch = args.scaling_batch
+    threads = args.threads_list or [t for t in (1, 2, 4, 8, 16, 32, 64) if t <= NUM_CPUS]
+    benches: list[Bench] = []
+    for name in ("half_cheetah", "ant"):
+        steps = max(2, (args.mujoco_steps // (4 if name == "ant" else 1)) // (4 if args.quick else 1))
+        for t in threads:
+            benches += [
+                (name, t, "limit", True, _physics_limit(name, batch, steps, t)),
+                (name, t, "alone", False, _batched(name, batch, steps, t, False)),
+                (name, t, "policy", False, _batched(name, batch, steps, t, True)),
+            ]
+    rates = run_benchmarks(benches, repeats)
+    med = {(e, t, label): statistics.median(rates[i]) for i, (e, t, label, *_) in enumerate(benches)}
+    lines = [
+        f"thread scaling, B={batch}, env steps/s (medians of {repeats} interleaved repeats)",
+        f"{'env':<13}{'threads':>8}{'mujoco.rollout limit':>22}{'batched alone':>15}{'batched + policy':>18}"
+        + f"{'alone/limit':>13}{'policy/limit':>14}",
+    ]
+    for name, t in dict.fromkeys((e, t) for e, t, *_ in benches):
+        limit, alone, policy = (med[(name, t, k)] for k in ("limit", "alone", "policy"))
+        lines.append(
+            f"{name:<13}{t:>8}{limit:>22,.0f}{alone:>15,.0f}{policy:>18,.0f}{alone / limit:>13.2f}"
+            f"{policy / limit:>14.2f}"
+        )
+    return "\n".join(lines)
+
+
+def meta_iteration_collection(threads: int, repeats: int, num_tasks: int = 20, per_task: int = 40,
+                              horizon: int = 100) -> tuple[float, int]:
+    """Median seconds to collect a paper-settings half_cheetah meta-iteration (pre- and post-update batches)."""
+    torch.set_num_threads(threads)
+    env = TransformedEnv(
+        BATCHED_ENVS["half_cheetah"](num_tasks * per_task, seed=0, num_threads=threads), StepCounter(horizon)
+    )
+    policy = _policy(env)
+    params = TensorDict.from_module(policy).data.expand(num_tasks).clone()  # per-task (adapted) parameters
+    times = []
+    for _ in range(repeats + 1):  # the first is a warm-up
+        start = time.perf_counter()
+        for p in (None, params):
+            collect(env, policy, num_tasks=num_tasks, horizon=horizon, params=p)
+        times.append(time.perf_counter() - start)
+    return statistics.median(times[1:]), 2 * num_tasks * per_task * horizon
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--envs", nargs="+", choices=ALL_ENVS, default=list(ALL_ENVS))
@@ -316,7 +390,21 @@ def main() -> None:
         "--per-core", action="store_true", help="add 1-thread rows: mujoco.rollout and the batched env alone"
     )
     parser.add_argument("--torch-threads", type=int, default=1, help="torch intra-op threads (policy)")
+    parser.add_argument("--scaling", action="store_true", help="the thread-scaling table (see the docstring)")
+    parser.add_argument("--scaling-batch", type=int, default=800, help="B of the thread-scaling table")
+    parser.add_argument(
+        "--threads-list", type=int, nargs="+", default=None, help="thread counts of the scaling table"
+    )
     args = parser.parse_args()
+    if args.scaling:
+        repeats = 2 if args.quick else args.repeats
+        print(f"umrl thread scaling: {NUM_CPUS} CPUs usable")
+        with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+            print(scaling_table(args, repeats))
+            seconds, steps = meta_iteration_collection(max(args.threads_list or [NUM_CPUS]), repeats)
+        print(f"half_cheetah meta-iteration collection (umrl.rollout.collect, per-task params): {steps:,} env steps "
+              f"in {seconds:.2f} s ({steps / seconds:,.0f} steps/s), {max(args.threads_list or [NUM_CPUS])} threads")
+        return
     torch.set_num_threads(args.torch_threads)
     repeats = 2 if args.quick else args.repeats
     torch.manual_seed(0)
