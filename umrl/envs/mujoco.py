@@ -2,8 +2,9 @@
 
 Two backends with identical keys, specs and (bit-for-bit) dynamics:
 
-- ``"batched"`` (default): :class:`~umrl.envs.mujoco_batched.BatchedMujocoEnv`, ``B`` ``MjData`` copies stepped in
-  a thread pool, no gymnasium in the loop (about 3x faster than the gym path at B=800 on 2 cores).
+- ``"batched"`` (default): :class:`~umrl.envs.mujoco_batched.BatchedMujocoEnv`, ``B`` state rows stepped by
+  ``mujoco.batch`` (HalfCheetah: one native multi-threaded call per step) or per copy on a thread pool (Ant, whose
+  contact forces need ``mj_rnePostConstraint``), no gymnasium in the loop.
 - ``"gym"``: the reference, TorchRL's ``GymWrapper`` over gymnasium's sync vector env
   (:func:`~umrl.envs.mujoco_gym.make_gym_mujoco_env`).
 """
