@@ -104,8 +104,8 @@ NO_GPU = pytest.mark.skipif(torch.cuda.is_available(), reason="device=cuda is va
     ("suite", ["launcher.workers=-1"], "launcher.workers: got -1; expected an integer >= 0"),
     ("maml", ["maml.inner_lr=nan"], "maml.inner_lr: got nan; expected a finite number > 0"),
     ("maml", ["proposal=diayn", "diayn_checkpoint=/no/such/run"],
-     "diayn_checkpoint: got '/no/such/run' (/no/such/run does not exist); expected an existing file or directory "
-     "(a DIAYN run directory or step_*.pt file: proposal=diayn needs it)"),
+     ("diayn_checkpoint: got '/no/such/run' (/no/such/run does not exist); expected an existing file or directory "
+     "(a DIAYN run directory or step_*.pt file: proposal=diayn needs it)")),
     # obscure before: a crash far from the cause
     ("diayn", ["checkpoint.every=0"], "checkpoint.every: got 0; expected an integer >= 1"),
     ("maml", ["checkpoint.every=0"], "checkpoint.every: got 0; expected an integer >= 1"),
@@ -120,13 +120,13 @@ NO_GPU = pytest.mark.skipif(torch.cuda.is_available(), reason="device=cuda is va
     ("maml", ["trpo.hvp=fisher"], "trpo.hvp: got 'fisher'; expected one of 'gauss_newton', 'exact'"),
     ("maml", ["policy.hidden=[]"], "policy.hidden: got []; expected a non-empty list of integers >= 1"),
     ("vime", ["env.name=walker"], "env.name: got 'walker'; expected one of 'point_nav', 'half_cheetah', 'ant'"),
-    ("vime", ["logger.backend=tensorboard"], "logger.backend: got 'tensorboard'; expected one of 'wandb', 'csv', "
-     "'none'"),
+    ("vime", ["logger.backend=tensorboard"], ("logger.backend: got 'tensorboard'; expected one of 'wandb', 'csv', "
+     "'none'")),
     ("vime", ["dynamics.holdout_fraction=1"], "dynamics.holdout_fraction: got 1; expected a finite number in (0, 1)"),
     ("diayn", ["collector.frames_per_batch=1601"],
      "collector.frames_per_batch: got 1601; expected a multiple of env.num_envs (16)"),
-    ("suite", ["methods=[scratch,sac]"], "methods[1]: got 'sac'; expected one of 'uml_diayn', 'uml_random', "
-     "'oracle', 'vime_init', 'diayn_init', 'scratch'"),
+    ("suite", ["methods=[scratch,sac]"], ("methods[1]: got 'sac'; expected one of 'uml_diayn', 'uml_random', "
+     "'oracle', 'vime_init', 'diayn_init', 'scratch'")),
     ("suite", ["protocol.num_steps=3"], "report.steps[2]: got 5; expected an integer <= protocol.num_steps (3)"),
     ("suite", ["++pretrain.maml.overrides.iterations=-5"],
      "pretrain.maml.overrides.iterations: got -5; expected an integer >= 1"),

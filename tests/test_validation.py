@@ -1,4 +1,5 @@
 """umrl.validation: each check accepts what it documents and names the argument, the bad value and what is accepted."""
+import functools
 import math
 
 import numpy as np
@@ -81,7 +82,7 @@ def test_check_bool_str_choice_mapping():
 
 
 def test_check_list_reports_the_bad_entry():
-    item = lambda name, v: check_int(name, v, min=0)  # noqa: E731
+    item = functools.partial(check_int, min=0)
     assert check_list("seeds", (0, 1), item, min_len=1) == [0, 1]
     with pytest.raises(InvalidValue, match=r"^seeds: got \[\]; expected a non-empty list of integers$"):
         check_list("seeds", [], item, min_len=1, what="integers")
