@@ -9,13 +9,19 @@ Runs UML-DIAYN, UML-random, oracle, VIME-init, DIAYN-init and scratch on the cho
 1. **Pre-training** (jobs): DIAYN, VIME and MAML with each proposal (diayn after its DIAYN run), by invoking the
    recipes as subprocesses with Hydra overrides (``pretrain.<recipe>.overrides``). A run that finished (marker file
    ``suite_complete``) is reused; a killed one resumes from its last checkpoint; ``pretrain.<recipe>.reuse`` points
-   at existing runs (path templates with ``{env}``, ``{seed}``, ``{proposal}``).
-2. **Meta-test cells**: each (method, env, seed) is an independent job running :func:`umrl.evaluation.run_cell`; its
-   CSV appears atomically when it finishes, and an existing CSV is never recomputed, so a killed suite resumes.
+   at existing runs (path templates with ``{env}``, ``{seed}``, ``{proposal}``). Meta-test seed ``seeds[i]`` uses
+   the runs of pre-training seed ``pretrain_seeds[i]`` (null: the same seed, independent pre-training per seed).
+2. **Meta-test cells**: each (method, env, seed) -- and, for the SGD methods, each ``protocol.sgd_schedule`` -- is
+   an independent job running :func:`umrl.metatest.run_cell` on a typed :class:`umrl.metatest.CellSpec`; its CSV
+   appears atomically when it finishes, and an existing CSV is never recomputed, so a killed suite resumes.
 3. **Meta-training ablation**: the kept MAML checkpoints along meta-training are meta-tested the same way.
-4. **Reports** under ``output_dir``: ``results.csv`` (tidy: method, env, seed, task, step, return), ``summary.md``
-   (return at k = 0, 1, 5, K and AUC: IQM and mean with bootstrap CIs), ``curves.png``, ``ablation.png`` /
+4. **Reports** (built by :mod:`umrl.metatest.results`) under ``output_dir``: ``results.csv`` (tidy: method, env,
+   seed, task, step, return, lr_schedule), ``summary.md`` (return at k = 0, 1, 5, K and AUC: IQM and mean with
+   bootstrap CIs; pre-training seeds; commit, command, hardware and wall time), ``curves.png``, ``ablation.png`` /
    ``ablation.md``, and wandb runs (offline by default) in one group per suite run.
+
+This file schedules and launches only; what a cell computes and how results are tabulated live in
+:mod:`umrl.metatest`.
 
 Jobs run in a local process pool (``launcher.workers``) or as Ray tasks when ``launcher.ray_address`` is set
 (``local`` starts a Ray instance on this machine). Every value is a config override (``benchmarks/config/``).
@@ -37,18 +43,27 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from umrl.evaluation import (
-    METHODS,
+from umrl.metatest import (
+    SGD_SCHEDULES,
+    CellSpec,
+    Pretraining,
+    ablation_curves,
+    ablation_table,
+    arm_label,
+    arm_styles,
     curves_from_rows,
+    get_method,
+    plot_ablation,
+    plot_adaptation_curves,
+    pretraining_note,
+    provenance,
     read_rows,
     run_cell,
-    run_matrix,
+    suite_summary,
     summary_table,
     write_rows,
 )
-from umrl.plots import Curve, plot_ablation, plot_adaptation_curves
 from umrl.runtime import Checkpointer, log_image, log_metrics, make_logger, to_container
-from umrl.stats import auc, bootstrap_ci
 
 REPO = Path(__file__).resolve().parents[1]
 DONE_MARKER = "suite_complete"
@@ -185,33 +200,64 @@ def run_jobs(jobs: Sequence[Job], launcher, *, log: Callable[[str], None] = prin
 # Planning: which pre-training runs and cells a config asks for
 
 
-def pretrain_key(kind: str, env: str, seed: int) -> str:
-    return f"pretrain/{kind}/{env}/seed{seed}"
+def pretrain_key(run: Pretraining, env: str, seed: int) -> str:
+    return f"pretrain/{run.kind}/{env}/seed{seed}"
 
 
-def cell_path(cfg: DictConfig, env: str, method: str, seed: int) -> Path:
-    return Path(cfg.output_dir).absolute() / "cells" / env / method / f"seed{seed}.csv"
+def _plain(value):
+    """A config node as plain Python (lists and dicts), anything else as it is (for error messages)."""
+    return OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
 
 
-def pretrain_dir(cfg: DictConfig, kind: str, env: str, seed: int) -> Path:
-    """Where pre-training ``kind`` (diayn, vime, maml_<proposal>) of (env, seed) lives (``reuse`` wins)."""
-    recipe, _, proposal = kind.partition("_")
-    template = cfg.pretrain[recipe].get("reuse")
+def sgd_schedules(cfg: DictConfig) -> list[str]:
+    """``protocol.sgd_schedule`` as a list: one schedule, or several (the SGD methods get one cell per schedule)."""
+    value = cfg.protocol.sgd_schedule
+    schedules = [str(value)] if isinstance(value, str) else [str(v) for v in value]
+    bad = [s for s in schedules if s not in SGD_SCHEDULES]
+    if not schedules or bad:
+        raise ValueError(f"protocol.sgd_schedule: got {_plain(value)!r}; accepted: one of {list(SGD_SCHEDULES)} "
+                         "or a non-empty list of them.")
+    return schedules
+
+
+def pretrain_seeds(cfg: DictConfig) -> list[int]:
+    """The pre-training seed of each meta-test seed: ``pretrain_seeds`` null (= the meta-test seeds: independent
+    pre-training), an int (one run shared by every seed) or a list as long as ``seeds``."""
+    value, seeds = cfg.pretrain_seeds, [int(s) for s in cfg.seeds]
+    if value is None:
+        return seeds
+    if isinstance(value, int) and not isinstance(value, bool):
+        return [value] * len(seeds)
+    values = [int(v) for v in value] if OmegaConf.is_list(value) or isinstance(value, (list, tuple)) else None
+    if values is None or len(values) != len(seeds):
+        raise ValueError(f"pretrain_seeds: got {_plain(value)!r}; "
+                         f"accepted: null, an int, or a list of {len(seeds)} ints (one per seed in {seeds}).")
+    return values
+
+
+def cell_path(cfg: DictConfig, env: str, method: str, seed: int, lr_schedule: str = "constant") -> Path:
+    """A cell's CSV: ``cells/<env>/<method>/seed<s>.csv`` (``seed<s>.<schedule>.csv`` for a non-constant schedule)."""
+    suffix = "" if lr_schedule == "constant" else f".{lr_schedule}"
+    return Path(cfg.output_dir).absolute() / "cells" / env / method / f"seed{seed}{suffix}.csv"
+
+
+def pretrain_dir(cfg: DictConfig, run: Pretraining, env: str, seed: int) -> Path:
+    """Where pre-training ``run`` of (env, seed) lives (``pretrain.<recipe>.reuse`` wins)."""
+    template = cfg.pretrain[run.recipe].get("reuse")
     if isinstance(template, Mapping) or OmegaConf.is_dict(template):
-        template = template.get(proposal)
+        template = template.get(run.proposal)
     if template:
-        return Path(str(template).format(env=env, seed=seed, proposal=proposal)).absolute()
-    return Path(cfg.output_dir).absolute() / "pretrain" / kind / env / f"seed{seed}"
+        return Path(str(template).format(env=env, seed=seed, proposal=run.proposal)).absolute()
+    return Path(cfg.output_dir).absolute() / "pretrain" / run.kind / env / f"seed{seed}"
 
 
 def _has_checkpoint(run_dir: Path) -> bool:
     return Checkpointer(run_dir / "checkpoints").latest() is not None
 
 
-def pretrain_done(cfg: DictConfig, kind: str, env: str, seed: int) -> bool:
-    run_dir = pretrain_dir(cfg, kind, env, seed)
-    reused = cfg.pretrain[kind.partition("_")[0]].get("reuse")
-    if reused and _has_checkpoint(run_dir):
+def pretrain_done(cfg: DictConfig, run: Pretraining, env: str, seed: int) -> bool:
+    run_dir = pretrain_dir(cfg, run, env, seed)
+    if cfg.pretrain[run.recipe].get("reuse") and _has_checkpoint(run_dir):
         return True  # an external run given by the user: taken as it is
     return (run_dir / DONE_MARKER).exists()
 
@@ -230,99 +276,102 @@ def hydra_overrides(values: Mapping, prefix: str = "") -> list[str]:
     return out
 
 
-def pretrain_command(cfg: DictConfig, kind: str, env: str, seed: int, group: str) -> list[str]:
+def pretrain_command(cfg: DictConfig, run: Pretraining, env: str, seed: int, group: str) -> list[str]:
     """The recipe invocation (Hydra overrides) for one pre-training run; resumes if a checkpoint exists."""
-    recipe, _, proposal = kind.partition("_")
-    spec = cfg.pretrain[recipe]
-    run_dir = pretrain_dir(cfg, kind, env, seed)
+    spec = cfg.pretrain[run.recipe]
+    run_dir = pretrain_dir(cfg, run, env, seed)
     cmd = [sys.executable, str(REPO / spec.recipe), f"env.name={env}", f"seed={seed}", f"output_dir={run_dir}",
            f"logger.backend={cfg.logger.backend}", f"logger.group={group}", "progress=false"]
-    if recipe == "maml":
-        cmd += [f"proposal={proposal}", "checkpoint.keep_all=true"]
-        if proposal == "diayn":
-            cmd.append(f"{spec.diayn_checkpoint_key}={pretrain_dir(cfg, 'diayn', env, seed)}")
+    if run.recipe == "maml":
+        cmd += [f"proposal={run.proposal}", "checkpoint.keep_all=true"]
+        for needed in run.requires:
+            cmd.append(f"{spec.diayn_checkpoint_key}={pretrain_dir(cfg, needed, env, seed)}")
     cmd += hydra_overrides(spec.get("overrides") or {})
     if _has_checkpoint(run_dir):
         cmd.append("resume=true")
     return cmd
 
 
-def _pretrain_job(cfg: DictConfig, kind: str, env: str, seed: int, group: str) -> Job:
-    run_dir = pretrain_dir(cfg, kind, env, seed)
-    log_file = Path(cfg.output_dir).absolute() / "logs" / f"{kind}_{env}_seed{seed}.log"
+def _pretrain_job(cfg: DictConfig, run: Pretraining, env: str, seed: int, group: str) -> Job:
+    run_dir = pretrain_dir(cfg, run, env, seed)
+    log_file = Path(cfg.output_dir).absolute() / "logs" / f"{run.kind}_{env}_seed{seed}.log"
     log_file.parent.mkdir(parents=True, exist_ok=True)
-    deps = (pretrain_key("diayn", env, seed),) if kind == "maml_diayn" else ()
     threads = str(cfg.launcher.threads)
     environ = {**os.environ, "OMP_NUM_THREADS": threads, "MKL_NUM_THREADS": threads, "PYTHONPATH": str(REPO)}
 
-    shell = f"{shlex.join(pretrain_command(cfg, kind, env, seed, group))} > {shlex.quote(str(log_file))} 2>&1"
-    return Job(key=pretrain_key(kind, env, seed), fn=subprocess.run, args=(["bash", "-c", shell],), deps=deps,
+    shell = f"{shlex.join(pretrain_command(cfg, run, env, seed, group))} > {shlex.quote(str(log_file))} 2>&1"
+    return Job(key=pretrain_key(run, env, seed), fn=subprocess.run, args=(["bash", "-c", shell],),
+               deps=tuple(pretrain_key(r, env, seed) for r in run.requires),
                kwargs={"check": True, "cwd": str(REPO), "env": environ},
-               done=lambda: pretrain_done(cfg, kind, env, seed),
+               done=lambda: pretrain_done(cfg, run, env, seed),
                on_success=lambda: (run_dir / DONE_MARKER).write_text(time.strftime("%Y-%m-%dT%H:%M:%S")))
 
 
-def _cell_spec(cfg: DictConfig, method: str, env: str, seed: int, output: Path, checkpoint: str | None,
-               **extra) -> dict:
-    protocol = to_container(cfg.protocol)
-    if "num_steps" in extra.get("protocol_overrides", {}):
-        protocol["num_steps"] = extra.pop("protocol_overrides")["num_steps"]
-    return {"method": method, "env": env, "seed": seed, "checkpoint": checkpoint, "output": str(output),
-            "protocol": protocol, "num_tasks": cfg.num_tasks, "adam_lr": cfg.adam_lr, "sgd_lr": cfg.sgd_lr,
-            "sweep": to_container(cfg.sweep), "skill_trajectories": cfg.skill_trajectories,
-            "threads": cfg.launcher.threads, "extra": extra}
+def cell_spec(cfg: DictConfig, method: str, env: str, seed: int, output: Path, checkpoint: str | None, *,
+              lr_schedule: str = "constant", num_steps: int | None = None, **extra) -> CellSpec:
+    """The typed :class:`CellSpec` of one cell from the suite config (``num_steps`` overrides ``protocol``'s K)."""
+    protocol = {**to_container(cfg.protocol), "sgd_schedule": lr_schedule}
+    if num_steps is not None:
+        protocol["num_steps"] = num_steps
+    return CellSpec.from_mapping({
+        "method": method, "env": env, "seed": seed, "output": str(output), "checkpoint": checkpoint,
+        "protocol": protocol, "num_tasks": cfg.num_tasks, "adam_lr": cfg.adam_lr, "sgd_lr": cfg.sgd_lr,
+        "sweep": to_container(cfg.sweep), "skill_trajectories": cfg.skill_trajectories,
+        "threads": cfg.launcher.threads, "extra": extra})
+
+
+def _cell_schedules(cfg: DictConfig, method: str) -> list[str]:
+    return sgd_schedules(cfg) if get_method(method).optimizer == "sgd" else ["constant"]
 
 
 def plan(cfg: DictConfig, group: str) -> list[Job]:
-    """Pre-training jobs and one meta-test job per (method, env, seed) cell."""
-    unknown = [m for m in cfg.methods if m not in METHODS]
-    if unknown:
-        raise ValueError(f"unknown methods {unknown}; valid choices: {list(METHODS)}.")
+    """Pre-training jobs and one meta-test job per (method, env, seed[, SGD schedule]) cell."""
+    methods = [get_method(m) for m in cfg.methods]
     jobs: dict[str, Job] = {}
     for env in cfg.envs:
-        for seed in cfg.seeds:
-            pseed = seed if cfg.pretrain_seed is None else int(cfg.pretrain_seed)
-            for method in cfg.methods:
-                kind = METHODS[method][0]
-                deps: tuple[str, ...] = ()
-                checkpoint = None
-                if kind is not None:
-                    needed = [kind] + (["diayn"] if kind == "maml_diayn" else [])
-                    for k in needed:
-                        key = pretrain_key(k, env, pseed)
-                        if key not in jobs:
-                            jobs[key] = _pretrain_job(cfg, k, env, pseed, group)
-                    deps = (pretrain_key(kind, env, pseed),)
-                    checkpoint = str(pretrain_dir(cfg, kind, env, pseed))
-                output = cell_path(cfg, env, method, seed)
-                spec = _cell_spec(cfg, method, env, seed, output, checkpoint)
-                key = f"cell/{env}/{method}/seed{seed}"
-                jobs[key] = Job(key=key, fn=run_cell, args=(spec,), deps=deps, done=output.exists)
-    # Pre-training first (DIAYN before the rest: MAML(diayn) waits for it), so the critical path starts at once.
-    rank = {"diayn": 0, "maml_diayn": 1}
-    return sorted(jobs.values(), key=lambda j: (not j.key.startswith("pretrain/"), rank.get(j.key.split("/")[1], 2)))
+        for seed, pseed in zip(cfg.seeds, pretrain_seeds(cfg)):
+            for method in methods:
+                run, deps, checkpoint = method.pretraining, (), None
+                if run is not None:
+                    for needed in (*run.requires, run):
+                        jobs.setdefault(pretrain_key(needed, env, pseed), _pretrain_job(cfg, needed, env, pseed, group))
+                    deps = (pretrain_key(run, env, pseed),)
+                    checkpoint = str(pretrain_dir(cfg, run, env, pseed))
+                for schedule in _cell_schedules(cfg, method.name):
+                    output = cell_path(cfg, env, method.name, seed, schedule)
+                    spec = cell_spec(cfg, method.name, env, seed, output, checkpoint, lr_schedule=schedule)
+                    suffix = "" if schedule == "constant" else f"/{schedule}"
+                    key = f"cell/{env}/{method.name}/seed{seed}{suffix}"
+                    jobs[key] = Job(key=key, fn=run_cell, args=(spec,), deps=deps, done=output.exists)
+    # Pre-training first, runs others depend on before them (DIAYN before MAML(diayn)), so the critical path starts at once.
+    def rank(job: Job) -> tuple[bool, int]:
+        needed_by_others = any(job.key in other.deps for other in jobs.values() if other.key.startswith("pretrain/"))
+        return not job.key.startswith("pretrain/"), 0 if needed_by_others else (1 if job.deps else 2)
+
+    return sorted(jobs.values(), key=rank)
 
 
 def plan_ablation(cfg: DictConfig) -> list[Job]:
     """Meta-test jobs for up to ``ablation.max_checkpoints`` kept MAML checkpoints (evenly spaced, last included)."""
     jobs = []
     for env in cfg.envs:
-        for method in cfg.ablation.methods:
-            if method not in cfg.methods or not METHODS[method][0].startswith("maml"):
+        for name in cfg.ablation.methods:
+            run = get_method(name).pretraining
+            if name not in cfg.methods or run is None or run.recipe != "maml":
                 continue
             for seed in cfg.ablation.seeds:
-                pseed = seed if cfg.pretrain_seed is None else int(cfg.pretrain_seed)
-                files = Checkpointer(pretrain_dir(cfg, METHODS[method][0], env, pseed) / "checkpoints").all()
+                pseed = pretrain_seeds(cfg)[list(cfg.seeds).index(seed)] if seed in cfg.seeds else seed
+                files = Checkpointer(pretrain_dir(cfg, run, env, pseed) / "checkpoints").all()
                 if not files:
                     continue
                 count = min(len(files), int(cfg.ablation.max_checkpoints))
                 picks = sorted({round(i * (len(files) - 1) / max(count - 1, 1)) for i in range(count)})
                 for file in (files[i] for i in picks):
                     iteration = int(file.stem.split("_")[-1])
-                    output = Path(cfg.output_dir).absolute() / "ablation" / env / method / f"seed{seed}" / f"iter{iteration}.csv"
-                    spec = _cell_spec(cfg, method, env, seed, output, str(file), iteration=iteration,
-                                      protocol_overrides={"num_steps": int(cfg.ablation.num_steps)})
-                    key = f"ablation/{env}/{method}/seed{seed}/iter{iteration}"
+                    output = Path(cfg.output_dir).absolute() / "ablation" / env / name / f"seed{seed}" / f"iter{iteration}.csv"
+                    spec = cell_spec(cfg, name, env, seed, output, str(file), lr_schedule=sgd_schedules(cfg)[0],
+                                     num_steps=int(cfg.ablation.num_steps), iteration=iteration)
+                    key = f"ablation/{env}/{name}/seed{seed}/iter{iteration}"
                     jobs.append(Job(key=key, fn=run_cell, args=(spec,), done=output.exists))
     return jobs
 
@@ -331,71 +380,56 @@ def plan_ablation(cfg: DictConfig) -> list[Job]:
 # Reports
 
 
-def ablation_curves(rows: Sequence[Mapping], *, metric: str) -> dict[str, dict[str, Curve]]:
-    """``{env: {method: Curve over meta-training iterations}}`` of the per-run ``metric`` (``auc`` or ``final``)."""
-    curves: dict[str, dict[str, Curve]] = {}
-    for env, method in sorted({(r["env"], r["method"]) for r in rows}):
-        iterations = sorted({int(r["iteration"]) for r in rows if r["env"] == env and r["method"] == method})
-        stats = []
-        for it in iterations:
-            subset = [r for r in rows if r["env"] == env and r["method"] == method and int(r["iteration"]) == it]
-            matrix = run_matrix(subset, env=env, method=method)
-            values = auc(matrix) if metric == "auc" else matrix[:, -1]
-            stats.append((values.mean(), *bootstrap_ci(values)))
-        mean, low, high = (list(x) for x in zip(*stats))
-        curves.setdefault(env, {})[method] = Curve(iterations, mean, low, high)
-    return curves
-
-
-def report(cfg: DictConfig, group: str, timings: Mapping[str, float]) -> str:
+def report(cfg: DictConfig, group: str, timings: Mapping[str, float], *, wall_seconds: float) -> str:
     """Write results.csv, summary.md, curves.png (+ ablation) and log them to wandb; returns the markdown."""
     out = Path(cfg.output_dir)
-    cells = [cell_path(cfg, env, m, s) for env in cfg.envs for m in cfg.methods for s in cfg.seeds]
+    cells = [cell_path(cfg, env, m, s, schedule) for env in cfg.envs for m in cfg.methods
+             for schedule in _cell_schedules(cfg, m) for s in cfg.seeds]
     rows = read_rows([p for p in cells if p.exists()])
     if not rows:
         raise RuntimeError(f"no finished cells under {out / 'cells'}: nothing to report (see {out / 'logs'}).")
     write_rows(rows, out / "results.csv")
     table, records = summary_table(rows, steps=list(cfg.report.steps), methods=list(cfg.methods))
-    plot_adaptation_curves(curves_from_rows(rows, methods=list(cfg.methods)), out / "curves.png")
+    plot_adaptation_curves(curves_from_rows(rows, methods=list(cfg.methods)), out / "curves.png",
+                           styles=arm_styles(rows))
     settings = OmegaConf.to_yaml(OmegaConf.create({k: to_container(cfg)[k] for k in (
-        "envs", "methods", "seeds", "pretrain_seed", "num_tasks", "protocol", "adam_lr", "sgd_lr", "sweep")}))
+        "envs", "methods", "seeds", "pretrain_seeds", "num_tasks", "protocol", "adam_lr", "sgd_lr", "sweep")}))
     lrs = {}
     for p in cells:
         if p.with_suffix(".json").exists():
             info = json.loads(p.with_suffix(".json").read_text())
-            lrs.setdefault((info["env"], info["method"]), set()).add(round(info["lr"], 6))
+            label = arm_label(info["method"], info.get("lr_schedule", "constant"))
+            lrs.setdefault((info["env"], label), set()).add(round(info["lr"], 6))
     lr_lines = [f"- {env} / {method}: lr {sorted(v)}" for (env, method), v in sorted(lrs.items())]
     time_lines = [f"- {k}: {v:.0f} s" for k, v in timings.items()] + [
         "", "(Jobs run with launcher.workers in parallel; per-job times of every invocation are in timings.json.)"]
-    markdown = (f"# Benchmark suite `{cfg.profile_name}`\n\nMeta-test return (IQM over tasks x seeds, 95% bootstrap "
-                f"CI); AUC = trapezoidal area under the return curve over k = 0..K.\n\n{table}\n"
-                f"## Meta-test learning rates\n\n" + "\n".join(lr_lines) + "\n\n## Wall time\n\n"
-                + "\n".join(time_lines) + f"\n\n## Settings\n\n```yaml\n{settings}```\n")
     ablation_files = sorted((out / "ablation").rglob("iter*.csv")) if (out / "ablation").exists() else []
     ablation_rows = [r for r in read_rows(ablation_files) if r["env"] in cfg.envs and r["method"] in cfg.methods]
+    ablation_md = None
     if ablation_rows:
         curves = ablation_curves(ablation_rows, metric="auc")
-        plot_ablation(curves, out / "ablation.png", metric=f"meta-test AUC (k = 0..{cfg.ablation.num_steps})")
-        lines = ["| env | method | iteration | AUC mean [95% CI] |", "|---|---|---|---|"]
-        for env, methods in curves.items():
-            for method, c in methods.items():
-                lines += [f"| {env} | {method} | {it} | {m:.1f} [{lo:.1f}, {hi:.1f}] |"
-                          for it, m, lo, hi in zip(c.x, c.mean, c.low, c.high)]
-        ablation_md = "# Meta-training ablation\n\n" + "\n".join(lines) + "\n"
+        plot_ablation(curves, out / "ablation.png", metric=f"meta-test AUC (k = 0..{cfg.ablation.num_steps})",
+                      styles=arm_styles(ablation_rows))
+        ablation_md = ablation_table(curves)
         (out / "ablation.md").write_text(ablation_md)
-        markdown += "\n" + ablation_md.replace("# Meta", "## Meta")
+    record = provenance(command=shlex.join([Path(sys.executable).name, *sys.argv]), wall_seconds=wall_seconds,
+                        job_threads=int(cfg.launcher.threads))
+    markdown = suite_summary(table, profile=cfg.profile_name, pretraining=pretraining_note(
+        list(cfg.seeds), pretrain_seeds(cfg)), lr_lines=lr_lines, time_lines=time_lines, settings_yaml=settings,
+        provenance=record, ablation=ablation_md)
     (out / "summary.md").write_text(markdown)
     _log_to_wandb(cfg, group, rows, records, out)
     return markdown
 
 
 def _log_to_wandb(cfg: DictConfig, group: str, rows, records, out: Path) -> None:
-    """One run per (env, method) with the mean curve and summary metrics, plus a report run with the figures."""
+    """One run per (env, arm) with the mean curve and summary metrics, plus a report run with the figures."""
     logger_cfg = {**to_container(cfg.logger), "group": group}
     curves = curves_from_rows(rows)
     for env, methods in curves.items():
         for method, curve in methods.items():
-            logger = make_logger(logger_cfg, exp_name=f"{method}_{env}", config={"method": method, "env": env})
+            logger = make_logger(logger_cfg, exp_name=f"{method}_{env}".replace(" ", "_"),
+                                 config={"method": method, "env": env})
             for k, (m, lo, hi) in enumerate(zip(curve.mean, curve.low, curve.high)):
                 log_metrics(logger, {"meta_test/return": m, "meta_test/return_low": lo,
                                      "meta_test/return_high": hi}, step=k)
@@ -463,7 +497,7 @@ def run_suite(cfg: DictConfig, *, log: Callable[[str], None] = print) -> str:
     history = json.loads(timings_file.read_text()) if timings_file.exists() else []
     history.append({"wall": time.perf_counter() - start, "jobs": job_times})
     timings_file.write_text(json.dumps(history, indent=1))
-    markdown = report(cfg, group, summarize_timings(history))
+    markdown = report(cfg, group, summarize_timings(history), wall_seconds=sum(inv["wall"] for inv in history))
     log(markdown)
     log(f"reports in {Path(cfg.output_dir).resolve()} (wandb group {group})")
     if failed:

@@ -1,24 +1,20 @@
-"""Meta-test evaluator: the first update by hand, k=0 from the initial params, DIAYN-init's skill choice, tables."""
+"""Meta-test protocol: the first update by hand, the SGD schedule's steps by hand, k=0 from the initial params,
+DIAYN-init's skill choice, the learning-rate sweep."""
 import copy
 import math
 
-import numpy as np
 import pytest
 import torch
 from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequential
 from torchrl.modules import ProbabilisticActor, TanhNormal
 
-from umrl.evaluation import (
+from umrl.metatest import (
     AdaptationConfig,
     TaskAdapter,
-    curves_from_rows,
     make_eval_env,
-    read_rows,
     select_skills,
-    summary_table,
+    sgd_lr_factor,
     sweep_learning_rate,
-    to_rows,
-    write_rows,
 )
 from umrl.modules.policy import make_gaussian_policy
 from umrl.objectives.policy_gradient import episode_returns
@@ -26,11 +22,18 @@ from umrl.objectives.policy_gradient import episode_returns
 GOALS = torch.tensor([[0.3, -0.2], [-0.4, 0.1], [0.05, 0.45]])
 
 
-def _expected_grads(policy, batch):
-    """Per-task gradient of -mean_valid(log N(a; mu(s), sigma) * A), by plain autograd on a module copy."""
+def _expected_grads(policy, batch, params=None):
+    """Per-task gradient of -mean_valid(log N(a; mu(s), sigma) * A), by plain autograd on a module copy.
+
+    ``params`` (per-task, batch ``[T]``): task t's copy holds ``params[t]`` instead of the policy's own weights.
+    """
     grads = []
     for t in range(batch.shape[0]):
         module = copy.deepcopy(policy)
+        if params is not None:
+            with torch.no_grad():
+                for name, p in module.named_parameters():
+                    p.copy_(params[t].flatten_keys(".")[name])
         data = batch[t]
         out = module(data.select("observation").clone())
         logp = torch.distributions.Normal(out["loc"], out["scale"]).log_prob(data["action"]).sum(-1)
@@ -132,20 +135,36 @@ def test_sweep_picks_the_best_lr_on_the_given_tasks():
     assert best == pytest.approx(1e-2) and len(scores) == 3 and len(seen) == 3
 
 
-def test_tidy_rows_roundtrip_curves_and_table(tmp_path):
-    rows = []
-    for seed in range(2):
-        good = np.tile(np.arange(6.0)[:, None], (1, 4))  # [K+1=6, T=4], rising
-        rows += to_rows(good + seed, method="uml_diayn", env="point_nav", seed=seed)
-        rows += to_rows(np.zeros((6, 4)), method="scratch", env="point_nav", seed=seed)
-    path = write_rows(rows, tmp_path / "cell.csv")
-    back = read_rows([path])
-    assert back == rows
-    curves = curves_from_rows(back)
-    np.testing.assert_allclose(curves["point_nav"]["uml_diayn"].mean, np.arange(6.0) + 0.5)
-    np.testing.assert_allclose(curves["point_nav"]["scratch"].high, 0.0)
-    markdown, records = summary_table(back, methods=["uml_diayn", "scratch"])
-    assert "| uml_diayn |" in markdown and "k=5" in markdown and markdown.index("uml_diayn") < markdown.index("scratch")
-    auc_rec = {r["method"]: r for r in records if r["metric"] == "auc"}
-    assert auc_rec["uml_diayn"]["mean"] == pytest.approx(12.5 + 5 * 0.5)  # trapezoid of 0..5 plus the seed offset
-    assert auc_rec["scratch"]["mean"] == 0.0
+def test_sgd_lr_factor_schedules_by_hand():
+    assert [sgd_lr_factor("constant", k) for k in range(4)] == [1.0, 1.0, 1.0, 1.0]
+    assert [sgd_lr_factor("reference", k) for k in range(4)] == [1.0, 0.5, 0.5, 0.5]  # alpha, then alpha / 2
+    with pytest.raises(ValueError, match=r"sgd_schedule.*\['constant', 'reference'\].*'halving'"):
+        sgd_lr_factor("halving", 0)
+    with pytest.raises(ValueError, match=r"protocol.sgd_schedule.*'halving'"):
+        AdaptationConfig(sgd_schedule="halving")
+
+
+@pytest.mark.parametrize("optimizer, schedule, expected", [
+    ("sgd", "constant", [0.2, 0.2, 0.2]),
+    ("sgd", "reference", [0.2, 0.1, 0.1]),
+    ("adam", "reference", [0.2, 0.2, 0.2]),  # the schedule is SGD's; Adam keeps its lr
+])
+def test_adapter_steps_follow_the_schedule(optimizer, schedule, expected):
+    torch.manual_seed(0)
+    policy = make_gaussian_policy(2, 2, hidden=(8,))
+    config = AdaptationConfig(num_steps=3, num_trajectories=4, horizon=10, sgd_schedule=schedule)
+    adapter = TaskAdapter(policy, make_eval_env("point_nav", GOALS, 4, seed=0, horizon=10), len(GOALS),
+                          optimizer=optimizer, lr=0.2, config=config)
+    used = []
+    for _ in range(3):
+        before = adapter.params.detach().clone()
+        batch = adapter.collect()
+        used.append(adapter.optimizer.param_groups[0]["lr"])
+        adapter.step(batch)
+        if optimizer == "sgd":  # the parameters moved by exactly lr_k * g_k, g_k by hand at the current params
+            for t, grad in enumerate(_expected_grads(policy, batch, params=before)):
+                for name, g in grad.items():
+                    got = adapter.params[t].flatten_keys(".")[name]
+                    want = before[t].flatten_keys(".")[name] - used[-1] * g
+                    torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-6)
+    assert used == pytest.approx(expected)

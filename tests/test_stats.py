@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from umrl.stats import auc, bootstrap_ci, iqm, summarize
+from umrl.metatest.stats import auc, bootstrap_ci, iqm, summarize
 
 
 def test_auc_trapezoid_known_values():

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from script_loading import compose_config
 
-from umrl.evaluation import read_rows, write_rows
+from umrl.metatest import Pretraining, read_rows, write_rows
 
 REPO = Path(__file__).resolve().parents[1]
 _spec = importlib.util.spec_from_file_location("umrl_suite", REPO / "benchmarks" / "suite.py")
@@ -26,7 +26,7 @@ def _cfg(tmp_path, *overrides):
 
 
 def test_plan_dependencies_and_shared_pretraining(tmp_path):
-    cfg = _cfg(tmp_path, "seeds=[0,1]", "pretrain_seed=0", "methods=[uml_diayn,diayn_init,scratch]")
+    cfg = _cfg(tmp_path, "seeds=[0,1]", "pretrain_seeds=0", "methods=[uml_diayn,diayn_init,scratch]")
     jobs = {job.key: job for job in suite.plan(cfg, group="g")}
     # one DIAYN and one MAML(diayn) run shared by both seeds; MAML(diayn) waits for DIAYN
     assert sorted(k for k in jobs if k.startswith("pretrain")) == [
@@ -41,7 +41,40 @@ def test_plan_dependencies_and_shared_pretraining(tmp_path):
     ckpt_dir = tmp_path / "pretrain" / "diayn" / "point_nav" / "seed0" / "checkpoints"
     ckpt_dir.mkdir(parents=True)
     (ckpt_dir / "step_10.pt").write_bytes(b"")
-    assert "resume=true" in suite.pretrain_command(cfg, "diayn", "point_nav", 0, "g")
+    assert "resume=true" in suite.pretrain_command(cfg, Pretraining("diayn"), "point_nav", 0, "g")
+
+
+def test_independent_pretraining_per_seed_and_both_sgd_schedules(tmp_path):
+    cfg = _cfg(tmp_path, "seeds=[0,1]", "pretrain_seeds=null", "methods=[uml_random,scratch]",
+               "protocol.sgd_schedule=[constant,reference]")
+    jobs = {job.key: job for job in suite.plan(cfg, group="g")}
+    # pretrain_seeds null: each meta-test seed has its own pre-training run
+    assert sorted(k for k in jobs if k.startswith("pretrain")) == [
+        "pretrain/maml_random/point_nav/seed0", "pretrain/maml_random/point_nav/seed1"]
+    assert jobs["cell/point_nav/uml_random/seed1"].deps == ("pretrain/maml_random/point_nav/seed1",)
+    # the SGD method gets one cell per schedule, Adam's scratch one
+    assert sorted(k for k in jobs if k.startswith("cell/")) == [
+        "cell/point_nav/scratch/seed0", "cell/point_nav/scratch/seed1",
+        "cell/point_nav/uml_random/seed0", "cell/point_nav/uml_random/seed0/reference",
+        "cell/point_nav/uml_random/seed1", "cell/point_nav/uml_random/seed1/reference"]
+    ref = jobs["cell/point_nav/uml_random/seed1/reference"].args[0]
+    assert ref.protocol.sgd_schedule == "reference" and ref.output.endswith("seed1.reference.csv")
+    assert ref.checkpoint.endswith("maml_random/point_nav/seed1")
+    explicit = _cfg(tmp_path, "seeds=[0,1]", "pretrain_seeds=[7,8]", "methods=[uml_random]")
+    assert "pretrain/maml_random/point_nav/seed8" in {j.key for j in suite.plan(explicit, group="g")}
+    with pytest.raises(ValueError, match=r"pretrain_seeds: got \[7\].*a list of 2 ints"):
+        suite.plan(_cfg(tmp_path, "seeds=[0,1]", "pretrain_seeds=[7]", "methods=[uml_random]"), group="g")
+    with pytest.raises(ValueError, match=r"protocol.sgd_schedule: got 'halving'.*constant"):
+        suite.plan(_cfg(tmp_path, "methods=[uml_random]", "protocol.sgd_schedule=halving"), group="g")
+
+
+def test_paper_profile_runs_k100_both_schedules_independent_pretraining():
+    cfg = compose_config("benchmarks/config", "suite", ["profile=paper"])
+    assert cfg.protocol.num_steps == 100 and list(cfg.protocol.sgd_schedule) == ["constant", "reference"]
+    assert cfg.pretrain_seeds is None
+    assert suite.pretrain_seeds(cfg) == list(cfg.seeds)
+    quick = compose_config("benchmarks/config", "suite", ["profile=quick"])
+    assert suite.pretrain_seeds(quick) == [0, 0, 0] and quick.protocol.sgd_schedule == "constant"
 
 
 def test_failed_job_blocks_dependants_only():
@@ -58,7 +91,8 @@ def test_failed_job_blocks_dependants_only():
 
 def test_existing_cell_is_skipped(tmp_path):
     cfg = _cfg(tmp_path, "methods=[scratch]", "seeds=[0,1]", "launcher.workers=0")
-    planted = [{"method": "scratch", "env": "point_nav", "seed": 0, "task": t, "step": k, "return": 123.0}
+    planted = [{"method": "scratch", "env": "point_nav", "seed": 0, "task": t, "step": k, "return": 123.0,
+                "lr_schedule": "constant"}
                for k in range(2) for t in range(2)]
     existing = write_rows(planted, suite.cell_path(cfg, "point_nav", "scratch", 0))
     suite.run_suite(cfg, log=lambda _: None)

@@ -1,0 +1,108 @@
+"""Meta-test: adapt each method's initialisation on held-out tasks and report the results.
+
+=================  ===========================================================================================
+module             job
+=================  ===========================================================================================
+``protocol``       the adaptation protocol: :class:`AdaptationConfig`, :class:`TaskAdapter` (batched per-task
+                   updates, SGD schedule), DIAYN-init's :func:`select_skills`, the learning-rate sweep
+``methods``        the method registry (:data:`METHODS` of typed :class:`Method` / :class:`Pretraining` records),
+                   :func:`load_initialisation`, the typed :class:`CellSpec` and :func:`run_cell`
+``results``        tidy rows / CSV, curves, the summary and ablation tables, the suite's ``summary.md``
+``stats``          AUC, IQM, bootstrap confidence intervals
+``plots``          adaptation-curve and ablation figures
+``provenance``     commit, command and hardware of a run
+=================  ===========================================================================================
+"""
+from umrl.metatest.methods import (
+    METHODS,
+    PROPOSALS,
+    RECIPES,
+    CellSpec,
+    Initialisation,
+    Method,
+    Pretraining,
+    SweepConfig,
+    env_dims,
+    get_method,
+    load_initialisation,
+    meta_test,
+    run_cell,
+)
+from umrl.metatest.plots import METHOD_COLORS, Curve, plot_ablation, plot_adaptation_curves
+from umrl.metatest.protocol import (
+    OPTIMIZERS,
+    SGD_SCHEDULES,
+    SWEEP_SEED_OFFSET,
+    AdaptationConfig,
+    TaskAdapter,
+    make_eval_env,
+    select_skills,
+    sgd_lr_factor,
+    sweep_learning_rate,
+    sweep_tasks,
+)
+from umrl.metatest.provenance import provenance
+from umrl.metatest.results import (
+    COLUMNS,
+    ablation_curves,
+    ablation_table,
+    arm_label,
+    arm_styles,
+    curves_from_rows,
+    pretraining_note,
+    read_rows,
+    run_matrix,
+    suite_summary,
+    summary_table,
+    to_rows,
+    write_rows,
+)
+from umrl.metatest.stats import auc, bootstrap_ci, iqm, summarize
+
+__all__ = [
+    "COLUMNS",
+    "METHODS",
+    "METHOD_COLORS",
+    "OPTIMIZERS",
+    "PROPOSALS",
+    "RECIPES",
+    "SGD_SCHEDULES",
+    "SWEEP_SEED_OFFSET",
+    "AdaptationConfig",
+    "CellSpec",
+    "Curve",
+    "Initialisation",
+    "Method",
+    "Pretraining",
+    "SweepConfig",
+    "TaskAdapter",
+    "ablation_curves",
+    "ablation_table",
+    "arm_label",
+    "arm_styles",
+    "auc",
+    "bootstrap_ci",
+    "curves_from_rows",
+    "env_dims",
+    "get_method",
+    "iqm",
+    "load_initialisation",
+    "make_eval_env",
+    "meta_test",
+    "plot_ablation",
+    "plot_adaptation_curves",
+    "pretraining_note",
+    "provenance",
+    "read_rows",
+    "run_cell",
+    "run_matrix",
+    "select_skills",
+    "sgd_lr_factor",
+    "suite_summary",
+    "summarize",
+    "summary_table",
+    "sweep_learning_rate",
+    "sweep_tasks",
+    "to_rows",
+    "write_rows",
+]

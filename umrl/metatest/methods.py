@@ -1,0 +1,335 @@
+"""The compared methods, what each hands to meta-test, and one suite cell = (method, env, seed).
+
+* :data:`METHODS` — name -> :class:`Method`: the :class:`Pretraining` run that produces its initialisation (typed:
+  recipe + proposal, never parsed out of a string) and its update rule at meta-test.
+* :func:`load_initialisation` — the policy a method starts meta-test from.
+* :class:`CellSpec` — every setting of one cell, typed, with its defaults in this one place, validated on
+  construction; :func:`run_cell` evaluates it and writes its tidy CSV (the suite's unit of work, picklable).
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+
+import torch
+from tensordict.nn import TensorDictModuleBase
+
+from umrl.envs import make_env
+from umrl.envs.tasks import get_task_family
+from umrl.metatest.protocol import (
+    AdaptationConfig,
+    TaskAdapter,
+    make_eval_env,
+    select_skills,
+    sweep_learning_rate,
+    sweep_tasks,
+)
+from umrl.metatest.results import to_rows, write_rows
+from umrl.modules.policy import make_gaussian_policy
+from umrl.runtime import seed_everything
+
+#: Pre-training recipes and the MAML recipe's task proposals.
+RECIPES = ("diayn", "maml", "vime")
+PROPOSALS = ("diayn", "random", "oracle")
+
+
+@dataclass(frozen=True)
+class Pretraining:
+    """One pre-training run kind: ``recipe`` (``diayn`` | ``maml`` | ``vime``) and, for MAML, its ``proposal``.
+
+    ``kind`` is its name in paths and job keys (``"diayn"``, ``"maml_random"``, ...); ``requires`` lists the runs
+    it reads (MAML with the DIAYN proposal reads the DIAYN run of the same env and seed).
+    """
+
+    recipe: str
+    proposal: str | None = None
+
+    def __post_init__(self):
+        if self.recipe not in RECIPES:
+            raise ValueError(f"pretraining recipe must be one of {list(RECIPES)}, got {self.recipe!r}.")
+        if (self.recipe == "maml") != (self.proposal is not None) or (
+                self.proposal is not None and self.proposal not in PROPOSALS):
+            raise ValueError(f"pretraining proposal: the maml recipe needs one of {list(PROPOSALS)} and the others "
+                             f"none; got recipe {self.recipe!r} with proposal {self.proposal!r}.")
+
+    @property
+    def kind(self) -> str:
+        return self.recipe if self.proposal is None else f"{self.recipe}_{self.proposal}"
+
+    @property
+    def requires(self) -> tuple[Pretraining, ...]:
+        return (Pretraining("diayn"),) if self.proposal == "diayn" else ()
+
+
+@dataclass(frozen=True)
+class Method:
+    """A compared method: its pre-training (None: scratch) and its meta-test update rule (``sgd`` | ``adam``)."""
+
+    name: str
+    pretraining: Pretraining | None
+    optimizer: str
+
+
+METHODS: dict[str, Method] = {m.name: m for m in (
+    Method("uml_diayn", Pretraining("maml", "diayn"), "sgd"),
+    Method("uml_random", Pretraining("maml", "random"), "sgd"),
+    Method("oracle", Pretraining("maml", "oracle"), "sgd"),
+    Method("vime_init", Pretraining("vime"), "adam"),
+    Method("diayn_init", Pretraining("diayn"), "adam"),
+    Method("scratch", None, "adam"),
+)}
+
+
+def get_method(name: str) -> Method:
+    """The :class:`Method` called ``name``; a clear error for an unknown one."""
+    if name not in METHODS:
+        raise ValueError(f"unknown method {name!r}; valid choices: {list(METHODS)}.")
+    return METHODS[name]
+
+
+@dataclass
+class Initialisation:
+    """A policy to adapt, its update rule and (DIAYN-init) the skill count; ``lr`` is the SGD step of MAML inits."""
+
+    policy: TensorDictModuleBase
+    optimizer: str
+    lr: float | None = None
+    num_skills: int | None = None
+
+
+def env_dims(env_name: str) -> tuple[int, int]:
+    """``(obs_dim, act_dim)`` of an env (builds one copy)."""
+    env = make_env(env_name, 1)
+    dims = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
+    env.close()
+    return dims
+
+
+def load_initialisation(method: str, env_name: str, checkpoint: str | os.PathLike | None, *,
+                        seed: int) -> Initialisation:
+    """The policy ``method`` starts meta-test from (see :data:`METHODS`); ``checkpoint`` is its pre-training output.
+
+    scratch draws a fresh 2x300 Gaussian policy from ``seed``; the MAML inits return the SGD step size they were
+    meta-trained with as ``lr``.
+    """
+    spec = get_method(method)
+    pretraining = spec.pretraining
+    if pretraining is None:
+        seed_everything(seed)
+        return Initialisation(make_gaussian_policy(*env_dims(env_name)), spec.optimizer)
+    if checkpoint is None:
+        raise ValueError(f"method {method!r} needs the checkpoint of its {pretraining.kind} pre-training.")
+    if pretraining.recipe == "vime":
+        from umrl.checkpoints import load_vime_policy
+
+        return Initialisation(load_vime_policy(checkpoint), spec.optimizer)
+    if pretraining.recipe == "diayn":
+        from umrl.checkpoints import load_skill_policy
+
+        actor, num_skills, _ = load_skill_policy(checkpoint)
+        return Initialisation(actor, spec.optimizer, num_skills=num_skills)
+    from umrl.checkpoints import load_maml_policy
+
+    policy, inner_lr = load_maml_policy(checkpoint)
+    return Initialisation(policy, spec.optimizer, lr=inner_lr)
+
+
+def meta_test(init: Initialisation, env_name: str, tasks: torch.Tensor, *, lr: float, seed: int,
+              config: AdaptationConfig, skill_trajectories: int) -> tuple[torch.Tensor, dict]:
+    """Adapt ``init`` on ``tasks`` ``[T, task_dim]``; returns (returns ``[K + 1, T]``, info).
+
+    DIAYN-init first picks each task's best skill from ``skill_trajectories`` rollouts per (task, skill);
+    ``info["skills"]`` lists them.
+    """
+    seed_everything(seed)
+    info: dict = {}
+    skills = None
+    if init.num_skills is not None:
+        skills, _ = select_skills(init.policy, env_name, tasks, init.num_skills, num_trajectories=skill_trajectories,
+                                  seed=seed, horizon=config.horizon)
+        info["skills"] = skills.tolist()
+    env = make_eval_env(env_name, tasks, config.num_trajectories, seed=seed, horizon=config.horizon, skills=skills,
+                        num_skills=init.num_skills)
+    returns = TaskAdapter(init.policy, env, tasks.shape[0], optimizer=init.optimizer, lr=lr, config=config).run()
+    env.close()
+    return returns, info
+
+
+def _reject(key: str, value, accepted: str) -> ValueError:
+    return ValueError(f"cell spec {key!r}: got {value!r}; accepted: {accepted}.")
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_positive(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0
+
+
+@dataclass(frozen=True)
+class SweepConfig:
+    """Learning-rate sweep of the Adam methods: best mean AUC over ``lrs`` on ``num_tasks`` non-evaluation tasks,
+    each adapted for ``num_steps`` steps (``enabled=False``: use ``CellSpec.adam_lr``)."""
+
+    enabled: bool = False
+    lrs: tuple[float, ...] = (1e-4, 3e-4, 1e-3, 3e-3)
+    num_tasks: int = 5
+    num_steps: int = 5
+
+    def __post_init__(self):
+        object.__setattr__(self, "lrs", tuple(float(lr) for lr in self.lrs))
+        if not isinstance(self.enabled, bool):
+            raise _reject("sweep.enabled", self.enabled, "true or false")
+        if not self.lrs or not all(lr > 0 for lr in self.lrs):
+            raise _reject("sweep.lrs", self.lrs, "a non-empty list of positive learning rates")
+        for key in ("num_tasks", "num_steps"):
+            value = getattr(self, key)
+            if not _is_int(value) or value < 1:
+                raise _reject(f"sweep.{key}", value, "an integer >= 1")
+
+
+@dataclass(frozen=True)
+class CellSpec:
+    """Everything one meta-test cell (method, env, seed) needs; defaults here are the only defaults.
+
+    Attributes:
+        method: a key of :data:`METHODS`.
+        env: env name (:func:`umrl.envs.make_env`).
+        seed: meta-test seed (>= 0): env sampling, scratch's initial weights, the sweep tasks.
+        output: the cell's CSV path; a JSON of the same stem records lr, sweep scores, skills and timing.
+        checkpoint: the pre-training output (run dir or ``step_*.pt``); None only for scratch.
+        protocol: the adaptation protocol (:class:`AdaptationConfig`).
+        num_tasks: held-out evaluation tasks (the family's first ``num_tasks`` eval tasks).
+        adam_lr: REINFORCE + Adam learning rate when the sweep is off.
+        sgd_lr: SGD step of MAML inits; None: the checkpoint's meta-trained inner lr.
+        sweep: the Adam learning-rate sweep (:class:`SweepConfig`).
+        skill_trajectories: DIAYN-init rollouts per (task, skill) when choosing each task's skill.
+        threads: torch threads of the job.
+        extra: constant columns added to every row (e.g. the ablation's ``iteration``).
+    """
+
+    method: str
+    env: str
+    seed: int
+    output: str
+    checkpoint: str | None = None
+    protocol: AdaptationConfig = field(default_factory=AdaptationConfig)
+    num_tasks: int = 20
+    adam_lr: float = 1e-3
+    sgd_lr: float | None = None
+    sweep: SweepConfig = field(default_factory=SweepConfig)
+    skill_trajectories: int = 4
+    threads: int = 1
+    extra: Mapping = field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.method not in METHODS:
+            raise _reject("method", self.method, f"one of {list(METHODS)}")
+        if not isinstance(self.env, str) or not self.env:
+            raise _reject("env", self.env, "an env name")
+        if not _is_int(self.seed) or self.seed < 0:
+            raise _reject("seed", self.seed, "an integer >= 0")
+        for key in ("num_tasks", "skill_trajectories", "threads"):
+            if not _is_int(getattr(self, key)) or getattr(self, key) < 1:
+                raise _reject(key, getattr(self, key), "an integer >= 1")
+        if not _is_positive(self.adam_lr):
+            raise _reject("adam_lr", self.adam_lr, "a positive float")
+        if self.sgd_lr is not None and not _is_positive(self.sgd_lr):
+            raise _reject("sgd_lr", self.sgd_lr, "null (the checkpoint's inner lr) or a positive float")
+        if (self.checkpoint is None) != (METHODS[self.method].pretraining is None):
+            raise _reject("checkpoint", self.checkpoint, f"a pre-training output for {self.method!r}"
+                          if self.checkpoint is None else "null for scratch")
+        if not isinstance(self.protocol, AdaptationConfig):
+            raise _reject("protocol", self.protocol, "an AdaptationConfig")
+        if not isinstance(self.sweep, SweepConfig):
+            raise _reject("sweep", self.sweep, "a SweepConfig")
+
+    @classmethod
+    def from_mapping(cls, values: Mapping) -> CellSpec:
+        """Build from plain nested mappings (``protocol`` and ``sweep`` as dicts); unknown keys are rejected."""
+        values = dict(values)
+        _check_keys("", values, cls)
+        if isinstance(values.get("protocol"), Mapping):
+            _check_keys("protocol.", values["protocol"], AdaptationConfig)
+            values["protocol"] = AdaptationConfig(**values["protocol"])
+        if isinstance(values.get("sweep"), Mapping):
+            _check_keys("sweep.", values["sweep"], SweepConfig)
+            values["sweep"] = SweepConfig(**values["sweep"])
+        return cls(**values)
+
+    @property
+    def lr_schedule(self) -> str:
+        """The cell's step-size schedule: ``protocol.sgd_schedule`` for SGD methods, ``"constant"`` for Adam."""
+        return self.protocol.sgd_schedule if METHODS[self.method].optimizer == "sgd" else "constant"
+
+
+def _check_keys(prefix: str, values: Mapping, cls) -> None:
+    known = {f.name for f in fields(cls)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise ValueError(f"cell spec: unknown keys {[prefix + k for k in unknown]}; accepted: {sorted(known)}.")
+
+
+def run_cell(spec: CellSpec) -> str:
+    """Evaluate one (method, env, seed) cell and write its tidy CSV; the suite's unit of work.
+
+    A JSON file beside the CSV records the learning rate used, the sweep scores, DIAYN-init's skills and timings.
+    Returns the CSV path; an existing CSV is left untouched (finished cells are never recomputed).
+    """
+    if not isinstance(spec, CellSpec):
+        raise TypeError(f"run_cell takes a CellSpec, got {type(spec).__name__}.")
+    output = Path(spec.output)
+    if output.exists():
+        return str(output)
+    torch.set_num_threads(spec.threads)
+    start = time.perf_counter()
+    config = spec.protocol
+    init = load_initialisation(spec.method, spec.env, spec.checkpoint, seed=spec.seed)
+    info: dict = {"method": spec.method, "env": spec.env, "seed": spec.seed, "checkpoint": spec.checkpoint}
+    if init.optimizer == "sgd":
+        lr = float(spec.sgd_lr) if spec.sgd_lr is not None else init.lr
+    else:
+        lr = float(spec.adam_lr)
+        if spec.sweep.enabled:
+            sweep_config = replace(config, num_steps=spec.sweep.num_steps)
+
+            def trial(trial_lr: float, tasks: torch.Tensor) -> torch.Tensor:
+                fresh = load_initialisation(spec.method, spec.env, spec.checkpoint, seed=spec.seed)
+                return meta_test(fresh, spec.env, tasks, lr=trial_lr, seed=spec.seed, config=sweep_config,
+                                 skill_trajectories=spec.skill_trajectories)[0]
+
+            lr, info["sweep_scores"] = sweep_learning_rate(
+                trial, list(spec.sweep.lrs), sweep_tasks(spec.env, spec.sweep.num_tasks, spec.seed))
+    tasks = get_task_family(spec.env).eval_tasks(spec.num_tasks)
+    returns, extra_info = meta_test(init, spec.env, tasks, lr=lr, seed=spec.seed, config=config,
+                                    skill_trajectories=spec.skill_trajectories)
+    info.update(extra_info, lr=lr, optimizer=init.optimizer, lr_schedule=spec.lr_schedule,
+                protocol=asdict(config), seconds=time.perf_counter() - start, mean_return=returns.mean(-1).tolist())
+    rows = to_rows(returns, method=spec.method, env=spec.env, seed=spec.seed, lr_schedule=spec.lr_schedule,
+                   **dict(spec.extra))
+    output.with_suffix(".json").parent.mkdir(parents=True, exist_ok=True)
+    output.with_suffix(".json").write_text(json.dumps(info, indent=1))
+    write_rows(rows, output)  # last: the CSV's existence marks the cell finished
+    return str(output)
+
+
+__all__ = [
+    "METHODS",
+    "PROPOSALS",
+    "RECIPES",
+    "CellSpec",
+    "Initialisation",
+    "Method",
+    "Pretraining",
+    "SweepConfig",
+    "env_dims",
+    "get_method",
+    "load_initialisation",
+    "meta_test",
+    "run_cell",
+]

@@ -1,0 +1,219 @@
+"""Meta-test results: tidy rows and CSV files, curves, the summary and ablation tables, the suite's ``summary.md``.
+
+A row is one (method, env, seed, task, step) return, plus ``lr_schedule`` (``constant`` | ``reference``: the
+step-size schedule the cell adapted with) and any constant ``extra`` columns (the ablation's ``iteration``). Tables
+and curves group rows by *arm*: the method, suffixed by its schedule when that is not ``constant``
+(:func:`arm_label`), so one table can hold both SGD schedules of a MAML initialisation.
+"""
+from __future__ import annotations
+
+import csv
+import os
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from umrl.metatest.plots import METHOD_COLORS, Curve
+from umrl.metatest.stats import auc, bootstrap_ci, summarize
+
+#: Columns of the tidy results table (``extra`` columns follow them).
+COLUMNS = ("method", "env", "seed", "task", "step", "return", "lr_schedule")
+
+
+def arm_label(method: str, lr_schedule: str = "constant") -> str:
+    """The name a (method, schedule) pair has in tables, curves and legends: ``uml_diayn``, ``uml_diayn (reference)``."""
+    return method if lr_schedule == "constant" else f"{method} ({lr_schedule})"
+
+
+def _label(row: Mapping) -> str:
+    return arm_label(row["method"], row.get("lr_schedule", "constant"))
+
+
+def arm_styles(rows: Iterable[Mapping]) -> dict[str, dict]:
+    """Line style per arm label: the method's colour, dashed for a non-constant schedule."""
+    return {_label(r): {"color": METHOD_COLORS.get(r["method"]),
+                        "linestyle": "-" if r.get("lr_schedule", "constant") == "constant" else "--"} for r in rows}
+
+
+def to_rows(returns: torch.Tensor | np.ndarray, *, method: str, env: str, seed: int, lr_schedule: str = "constant",
+            **extra) -> list[dict]:
+    """Tidy rows (:data:`COLUMNS` plus ``extra`` columns) from returns ``[K + 1, T]``."""
+    returns = np.asarray(returns)
+    return [
+        {"method": method, "env": env, "seed": int(seed), "task": int(t), "step": int(k),
+         "return": float(returns[k, t]), "lr_schedule": lr_schedule, **extra}
+        for k in range(returns.shape[0]) for t in range(returns.shape[1])
+    ]
+
+
+def write_rows(rows: Sequence[Mapping], path: str | os.PathLike) -> Path:
+    """Write rows as CSV atomically (a killed write never leaves a partial file under ``path``)."""
+    if not rows:
+        raise ValueError(f"no rows to write to {path}.")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    with tmp.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    os.replace(tmp, path)
+    return path
+
+
+def read_rows(paths: Iterable[str | os.PathLike]) -> list[dict]:
+    """Rows of one or more CSV files, with ``seed``/``task``/``step`` as int and ``return`` as float.
+
+    Files written before the ``lr_schedule`` column existed read as ``constant``.
+    """
+    rows = []
+    for path in paths:
+        with Path(path).open(newline="") as f:
+            for row in csv.DictReader(f):
+                row.update(seed=int(row["seed"]), task=int(row["task"]), step=int(row["step"]),
+                           **{"return": float(row["return"])})
+                row.setdefault("lr_schedule", "constant")
+                rows.append(row)
+    return rows
+
+
+def run_matrix(rows: Iterable[Mapping], *, env: str, method: str) -> np.ndarray:
+    """``[runs, K + 1]`` returns of one (env, arm): one row per (seed, task), sorted; ``method`` is an arm label."""
+    table: dict[tuple[int, int], dict[int, float]] = {}
+    for row in rows:
+        if row["env"] == env and _label(row) == method:
+            table.setdefault((row["seed"], row["task"]), {})[row["step"]] = row["return"]
+    if not table:
+        raise ValueError(f"no results for method {method!r} on env {env!r}.")
+    steps = sorted(next(iter(table.values())))
+    return np.array([[table[run][k] for k in steps] for run in sorted(table)])
+
+
+def _ordered_arms(rows: Sequence[Mapping], env: str, methods: Sequence[str] | None) -> list[str]:
+    """Arms present for ``env``: in the order of ``methods`` (each method's constant schedule first), others sorted."""
+    order = {m: i for i, m in enumerate(methods or [])}
+    present = {(r["method"], r.get("lr_schedule", "constant")) for r in rows if r["env"] == env}
+    ranked = sorted(present, key=lambda a: (order.get(a[0], len(order)), a[0], a[1] != "constant", a[1]))
+    return [arm_label(*arm) for arm in ranked]
+
+
+def curves_from_rows(rows: Sequence[Mapping], *, methods: Sequence[str] | None = None,
+                     confidence: float = 0.95) -> dict[str, dict[str, Curve]]:
+    """``{env: {arm label: Curve}}``: mean return per step over (seed, task) runs with bootstrap CI bands.
+
+    Methods come in the order of ``methods`` (others after them, sorted).
+    """
+    curves: dict[str, dict[str, Curve]] = {}
+    for env in sorted({r["env"] for r in rows}):
+        for label in _ordered_arms(rows, env, methods):
+            matrix = run_matrix(rows, env=env, method=label)
+            bands = np.array([bootstrap_ci(matrix[:, k], confidence=confidence) for k in range(matrix.shape[1])])
+            curves.setdefault(env, {})[label] = Curve(np.arange(matrix.shape[1]), matrix.mean(0), bands[:, 0],
+                                                      bands[:, 1])
+    return curves
+
+
+def summary_table(rows: Sequence[Mapping], *, steps: Sequence[int] = (0, 1, 5), methods: Sequence[str] | None = None,
+                  confidence: float = 0.95) -> tuple[str, list[dict]]:
+    """Markdown table and records: return at ``k ∈ steps ∪ {K}`` and AUC per (env, arm).
+
+    Every cell is the IQM over (seed, task) runs with its bootstrap CI; the AUC is also given as a mean with CI.
+    Returns ``(markdown, records)``; each record holds ``env``, ``method`` (the arm label), ``metric`` and
+    :func:`~umrl.metatest.stats.summarize`'s keys.
+    """
+    records = []
+    lines = []
+    for env in sorted({r["env"] for r in rows}):
+        order = _ordered_arms(rows, env, methods)
+        num_steps = run_matrix(rows, env=env, method=order[0]).shape[1] - 1
+        ks = sorted({k for k in steps if k <= num_steps} | {num_steps})
+        header = ["method"] + [f"k={k} IQM [95% CI]" for k in ks] + ["AUC IQM [95% CI]", "AUC mean [95% CI]", "runs"]
+        lines += [f"### {env}", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+        for method in order:
+            matrix = run_matrix(rows, env=env, method=method)
+            cells = []
+            for k in ks:
+                s = summarize(matrix[:, k], confidence=confidence)
+                records.append({"env": env, "method": method, "metric": f"return_k{k}", **s})
+                cells.append(f"{s['iqm']:.2f} [{s['iqm_low']:.2f}, {s['iqm_high']:.2f}]")
+            s = summarize(auc(matrix), confidence=confidence)
+            records.append({"env": env, "method": method, "metric": "auc", **s})
+            cells.append(f"{s['iqm']:.1f} [{s['iqm_low']:.1f}, {s['iqm_high']:.1f}]")
+            cells.append(f"{s['mean']:.1f} [{s['mean_low']:.1f}, {s['mean_high']:.1f}]")
+            lines.append(f"| {method} | " + " | ".join(cells) + f" | {matrix.shape[0]} |")
+        lines.append("")
+    return "\n".join(lines), records
+
+
+def ablation_curves(rows: Sequence[Mapping], *, metric: str) -> dict[str, dict[str, Curve]]:
+    """``{env: {arm label: Curve over meta-training iterations}}`` of the per-run ``metric`` (``auc`` | ``final``).
+
+    Rows carry an ``iteration`` column (the meta-training iteration of the meta-tested checkpoint).
+    """
+    if metric not in ("auc", "final"):
+        raise ValueError(f"metric must be 'auc' or 'final', got {metric!r}.")
+    curves: dict[str, dict[str, Curve]] = {}
+    for env, label in sorted({(r["env"], _label(r)) for r in rows}):
+        arm_rows = [r for r in rows if r["env"] == env and _label(r) == label]
+        iterations = sorted({int(r["iteration"]) for r in arm_rows})
+        stats = []
+        for it in iterations:
+            matrix = run_matrix([r for r in arm_rows if int(r["iteration"]) == it], env=env, method=label)
+            values = auc(matrix) if metric == "auc" else matrix[:, -1]
+            stats.append((values.mean(), *bootstrap_ci(values)))
+        mean, low, high = (list(x) for x in zip(*stats))
+        curves.setdefault(env, {})[label] = Curve(iterations, mean, low, high)
+    return curves
+
+
+def ablation_table(curves: Mapping[str, Mapping[str, Curve]]) -> str:
+    """Markdown of :func:`ablation_curves`' output: one line per (env, arm, iteration) with mean and 95 % CI."""
+    lines = ["# Meta-training ablation", "", "| env | method | iteration | AUC mean [95% CI] |", "|---|---|---|---|"]
+    for env, methods in curves.items():
+        for method, c in methods.items():
+            lines += [f"| {env} | {method} | {it} | {m:.1f} [{lo:.1f}, {hi:.1f}] |"
+                      for it, m, lo, hi in zip(c.x, c.mean, c.low, c.high)]
+    return "\n".join(lines) + "\n"
+
+
+def pretraining_note(seeds: Sequence[int], pretrain_seeds: Sequence[int]) -> str:
+    """One sentence saying which pre-training run stands behind each meta-test seed (and what that leaves out)."""
+    pairs = ", ".join(f"{s}→{p}" for s, p in zip(seeds, pretrain_seeds))
+    if len(set(pretrain_seeds)) == len(pretrain_seeds):
+        return (f"Pre-training: independent per meta-test seed (meta-test seed → pre-training seed: {pairs}); "
+                "the intervals include pre-training variance.")
+    return (f"Pre-training: **shared** (meta-test seed → pre-training seed: {pairs}); the intervals leave out "
+            "pre-training variance.")
+
+
+def suite_summary(table: str, *, profile: str, pretraining: str, lr_lines: Sequence[str], time_lines: Sequence[str],
+                  settings_yaml: str, provenance: Mapping[str, str], ablation: str | None = None) -> str:
+    """The suite's ``summary.md``: title, protocol line, pre-training note, the table (:func:`summary_table`),
+    learning rates, wall times, provenance (:func:`~umrl.metatest.provenance.provenance`), settings and the ablation table."""
+    markdown = (f"# Benchmark suite `{profile}`\n\nMeta-test return (IQM over tasks x seeds, 95% bootstrap "
+                f"CI); AUC = trapezoidal area under the return curve over k = 0..K.\n\n{pretraining}\n\n{table}\n"
+                "## Meta-test learning rates\n\n" + "\n".join(lr_lines) + "\n\n## Wall time\n\n"
+                + "\n".join(time_lines) + "\n\n## Provenance\n\n" + "\n".join(f"- {k}: {v}" for k, v in provenance.items())
+                + f"\n\n## Settings\n\n```yaml\n{settings_yaml}```\n")
+    if ablation:
+        markdown += "\n" + ablation.replace("# Meta", "## Meta")
+    return markdown
+
+
+__all__ = [
+    "COLUMNS",
+    "ablation_curves",
+    "ablation_table",
+    "arm_label",
+    "arm_styles",
+    "curves_from_rows",
+    "pretraining_note",
+    "read_rows",
+    "run_matrix",
+    "suite_summary",
+    "summary_table",
+    "to_rows",
+    "write_rows",
+]
