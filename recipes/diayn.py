@@ -38,8 +38,7 @@ from torchrl.envs import RewardSum
 from torchrl.objectives import SoftUpdate
 
 from umrl.checkpoints import DIAYN_FORMAT, save_diayn_checkpoint
-from umrl.envs import make_env
-from umrl.envs.tasks import get_task_family
+from umrl.envs import get_env_spec, make_env
 from umrl.modules.discriminator import make_discriminator
 from umrl.modules.sac import make_skill_actor, make_skill_qvalue
 from umrl.objectives.diayn import DIAYNLoss
@@ -55,13 +54,10 @@ from umrl.skill_coverage import coverage_metrics, evaluate_skills, plot_coverage
 from umrl.transforms.discriminator_reward import DiscriminatorReward
 from umrl.transforms.skill import SkillTransform
 
-DEFAULT_SKILLS = {"point_nav": 50, "half_cheetah": 20, "ant": 20}
-
 
 def resolve_num_skills(cfg: DictConfig) -> int:
-    num_skills = cfg.num_skills if cfg.num_skills is not None else DEFAULT_SKILLS.get(cfg.env.name)
-    if num_skills is None:
-        raise ValueError(f"unknown env {cfg.env.name!r}; valid choices: {sorted(DEFAULT_SKILLS)}.")
+    """``num_skills``, or the env's default (:attr:`umrl.envs.EnvSpec.num_skills`) when it is null."""
+    num_skills = cfg.num_skills if cfg.num_skills is not None else get_env_spec(cfg.env.name).num_skills
     if int(num_skills) != num_skills or num_skills < 2:
         raise ValueError(f"num_skills must be an integer >= 2 (DIAYN needs skills to tell apart), got {num_skills}.")
     return int(num_skills)
@@ -100,9 +96,11 @@ def evaluate(cfg, env, actor, discriminator, num_skills, step, figure_path, logg
     result = evaluate_skills(env, actor, env_name=cfg.env.name, num_skills=num_skills,
                              episodes_per_skill=cfg.eval.episodes_per_skill, horizon=cfg.env.horizon)
     metrics = {f"eval/{k}": v for k, v in coverage_metrics(result, num_skills, discriminator).items()}
-    eval_tasks = get_task_family(cfg.env.name).eval_tasks()
-    figure = plot_coverage(result, num_skills, eval_tasks, figure_path,
-                           title=f"DIAYN {cfg.env.name}, {num_skills} skills, {step} env steps", baseline=baseline)
+    spec = get_env_spec(cfg.env.name)
+    eval_tasks = spec.task_family.eval_tasks(spec.num_eval_tasks)
+    figure = plot_coverage(result["end_point"], figure_path, eval_tasks=eval_tasks, skills=result["skill"],
+                           baseline=baseline["end_point"],
+                           title=f"DIAYN {cfg.env.name}, {num_skills} skills, {step} env steps")
     log_image(logger, "eval/skill_coverage", figure, step)
     return metrics
 

@@ -7,16 +7,19 @@
 Each iteration: collect ``env.num_envs`` trajectories of ``env.horizon`` steps with the current policy
 (:func:`umrl.rollout.collect`, one batched policy call per step) -> score every transition with
 :class:`~umrl.transforms.vime_bonus.VIMEBonus` using the dynamics model *before* it sees them (the reward is the bonus
-alone: the CMP's reward is zero) -> add them to the dynamics model's replay (a share goes to a held-out set) ->
+alone: the CMP's reward is zero) -> add them to the dynamics model's FIFO replay (a TorchRL ``ReplayBuffer`` over a
+``LazyTensorStorage``; a share goes to a held-out one) ->
 update the running input/target statistics and train the model (:class:`~umrl.objectives.vime.VIMELoss`, Adam) ->
-one TRPO step (:class:`umrl.optim.trpo.TRPOStep`) on the importance-ratio surrogate with linear-baseline GAE
-advantages (:func:`umrl.objectives.policy_gradient.compute_advantages`).
+one TRPO step (:class:`umrl.optim.trpo.TRPOStep`) on the importance-ratio surrogate (``MAMLLoss``'s outer
+objective with no inner step) with linear-baseline GAE advantages
+(:func:`umrl.objectives.policy_gradient.compute_advantages`).
 
 Logged (namespaced): ``bonus/`` info gain and bonus statistics; ``dynamics/`` training loss, log-likelihood, KL to
 the prior, held-out log-likelihood and ELBO per transition; ``trpo/`` improvement, KL, acceptance, backtracks;
 ``coverage/`` of the batch's visited states (x-y cells and their area for point_nav and ant, velocity ranges for
 half_cheetah), the untrained policy's under ``coverage/initial_*`` and everything visited so far under
-``coverage/cumulative_*``; ``time/`` env steps/s and seconds per phase.
+``coverage/cumulative_*`` (all from :mod:`umrl.skill_coverage`); ``time/`` env steps/s and seconds per phase. The
+figure ``<output_dir>/figures/coverage.png`` shows the last batch's visited states against the untrained policy's.
 
 Checkpoints: ``<output_dir>/checkpoints/step_<iteration>.pt``, format ``umrl.vime.v1`` (documented in
 :mod:`umrl.checkpoints.vime`); ``umrl.checkpoints.load_vime_policy(path)`` returns the policy to fine-tune.
@@ -33,63 +36,23 @@ import hydra
 import torch
 import tqdm
 from omegaconf import DictConfig
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
+from torchrl.data import LazyTensorStorage, ReplayBuffer, TensorDictReplayBuffer
 
 from umrl.checkpoints import VIME_FORMAT, save_vime_checkpoint
-from umrl.envs import make_env
+from umrl.envs import get_env_spec, make_env
 from umrl.modules.bnn import BayesianDynamics
 from umrl.modules.policy import make_gaussian_policy
+from umrl.objectives.maml import MAMLLoss
 from umrl.objectives.policy_gradient import compute_advantages
 from umrl.objectives.vime import VIMELoss
 from umrl.optim.trpo import TRPOStep
-from umrl.rollout import FunctionalPolicy, collect
+from umrl.rollout import collect
 from umrl.runtime import Checkpointer, check_finite, log_metrics, make_logger, seed_everything
+from umrl.skill_coverage import cumulative_coverage, plot_coverage, state_coverage, visited_states
 from umrl.transforms.vime_bonus import VIMEBonus
 
-COVERAGE_KEYS = {"point_nav": "position", "ant": "xy_position", "half_cheetah": "x_velocity"}
-DEFAULT_CELL = {"point_nav": 0.1, "ant": 0.25}
 TRANSITION_KEYS = ("observation", "action", ("next", "observation"))
-
-
-def state_coverage(batch: TensorDictBase, env_name: str, cell_size: float | None = None) -> dict[str, float]:
-    """Coverage of the states visited in ``batch`` (valid steps of ``("next", key)``, ``"mask"`` [..., H]).
-
-    x-y envs: ``cells`` (distinct grid cells of side ``cell_size``), ``area`` (cells x cell area), ``max_distance``
-    from the origin. half_cheetah: ``velocity_range`` (max - min forward velocity) and ``velocity_range_p5_p95``.
-    """
-    values = visited_states(batch, env_name)
-    if env_name == "half_cheetah":
-        v = values.reshape(-1)
-        low, high = torch.quantile(v, torch.tensor([0.05, 0.95]))
-        return {"velocity_range": float(v.max() - v.min()), "velocity_range_p5_p95": float(high - low)}
-    cell = cell_size if cell_size is not None else DEFAULT_CELL[env_name]
-    cells = torch.unique(torch.floor(values / cell).long(), dim=0).shape[0]
-    return {"cells": float(cells), "area": cells * cell**2, "max_distance": float(values.norm(dim=-1).max())}
-
-
-def visited_states(batch: TensorDictBase, env_name: str) -> torch.Tensor:
-    """``[M, k]`` x-y positions (point_nav, ant) or forward velocities (half_cheetah) at the batch's valid steps."""
-    if env_name not in COVERAGE_KEYS:
-        raise ValueError(f"no coverage measure for env {env_name!r}; valid choices: {sorted(COVERAGE_KEYS)}.")
-    return batch["next", COVERAGE_KEYS[env_name]][batch["mask"]]
-
-
-def cumulative_coverage(
-    seen: torch.Tensor | None, batch: TensorDictBase, env_name: str, cell_size: float | None = None
-) -> tuple[torch.Tensor, dict[str, float]]:
-    """Fold ``batch`` into everything visited so far: ``seen`` is the set of visited cells ``[M, 2]`` (x-y envs) or
-    the ``[min, max]`` velocity (half_cheetah). Returns the new ``seen`` and ``cumulative_cells`` / ``_area`` or
-    ``cumulative_velocity_range``."""
-    values = visited_states(batch, env_name)
-    if env_name == "half_cheetah":
-        v = values.reshape(-1)
-        seen = torch.stack([v.min(), v.max()]) if seen is None else torch.stack(
-            [torch.minimum(seen[0], v.min()), torch.maximum(seen[1], v.max())])
-        return seen, {"cumulative_velocity_range": float(seen[1] - seen[0])}
-    cell = cell_size if cell_size is not None else DEFAULT_CELL[env_name]
-    cells = torch.floor(values / cell).long()
-    seen = torch.unique(cells if seen is None else torch.cat([seen, cells]), dim=0)
-    return seen, {"cumulative_cells": float(seen.shape[0]), "cumulative_area": seen.shape[0] * cell**2}
 
 
 def check_config(cfg: DictConfig) -> None:
@@ -106,37 +69,27 @@ def check_config(cfg: DictConfig) -> None:
         raise ValueError(f"dynamics.holdout_fraction must be in (0, 1), got {cfg.dynamics.holdout_fraction}.")
 
 
-def append(buffer: TensorDictBase | None, data: TensorDictBase, size: int) -> TensorDictBase:
-    """FIFO buffer of transitions: ``buffer`` + ``data``, keeping the newest ``size``."""
-    merged = data if buffer is None else torch.cat([buffer, data])
-    return merged[-size:]
+def fifo_contents(buffer: ReplayBuffer) -> TensorDictBase:
+    """The transitions held by a FIFO ``buffer`` (a round-robin ``LazyTensorStorage``), oldest first."""
+    data = buffer[:]
+    if buffer.write_count > len(buffer):  # wrapped: the oldest entry sits at the write cursor
+        data = data[(torch.arange(len(buffer)) + buffer.write_count) % len(buffer)]
+    return data
 
 
-def trpo_update(trpo: TRPOStep, policy, params: TensorDictBase, batch: TensorDictBase) -> dict[str, float]:
-    """One TRPO step on ``-mean(ratio * advantage)`` with the mean KL(old || new) over the valid steps."""
-    functional = FunctionalPolicy(policy)
-    old = policy.build_dist_from_params(batch.select("loc", "scale"))
-    old_log_prob = batch["action_log_prob"]
-    weights = batch["mask"].to(old_log_prob.dtype)
-    weights = weights / weights.sum()
-    advantage = batch["advantage"].squeeze(-1)
-
-    def closure():
-        new = functional.dist(params, batch)
-        ratio = torch.exp(new.log_prob(batch["action"]) - old_log_prob)
-        surrogate = -(ratio * advantage * weights).sum()
-        kl = (torch.distributions.kl_divergence(old, new) * weights).sum()
-        return surrogate, kl
-
-    return trpo(closure)
+def trpo_update(trpo: TRPOStep, loss: MAMLLoss, batch: TensorDictBase) -> dict[str, float]:
+    """One TRPO step on the importance-ratio surrogate ``-mean(ratio * advantage)`` with the mean KL(old || new)
+    over the valid steps: ``MAMLLoss``'s outer objective with no inner step (``batch`` is one task's ``[N, H]``)."""
+    task = batch.unsqueeze(0)  # [1, N, H]: the support and the query of a single task
+    return trpo(lambda: loss.objective_and_kl(task, task))
 
 
-def train_dynamics(loss_fn: VIMELoss, optimizer, replay: TensorDictBase, cfg: DictConfig) -> dict[str, float]:
+def train_dynamics(loss_fn: VIMELoss, optimizer, replay: ReplayBuffer, cfg: DictConfig) -> dict[str, float]:
     """``updates_per_iteration`` Adam steps on random minibatches of the replay; mean diagnostics."""
-    loss_fn.dataset_size = replay.shape[0]
+    loss_fn.dataset_size = len(replay)
     logs = []
     for _ in range(cfg.dynamics.updates_per_iteration):
-        out = loss_fn(replay[torch.randint(replay.shape[0], (cfg.dynamics.batch_size,))])
+        out = loss_fn(replay.sample(cfg.dynamics.batch_size))
         check_finite({"loss_dynamics": out["loss_dynamics"]}, "dynamics update")
         optimizer.zero_grad(set_to_none=True)
         out["loss_dynamics"].backward()
@@ -157,25 +110,6 @@ def heldout_metrics(loss_fn: VIMELoss, holdout: TensorDictBase) -> dict[str, flo
     return {"heldout_log_likelihood": log_lik, "heldout_elbo": elbo}
 
 
-def plot_coverage(first: TensorDictBase, last: TensorDictBase, env_name: str, path: Path) -> None:
-    """Visited x-y positions of the untrained policy's batch and of the last batch (2-D envs)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(5, 5))
-    for batch, label, color in ((first, "initial policy", "tab:gray"), (last, "VIME policy", "tab:red")):
-        xy = batch["next", COVERAGE_KEYS[env_name]][batch["mask"]]
-        ax.scatter(xy[:, 0], xy[:, 1], s=1, alpha=0.3, color=color, label=label)
-    ax.set_aspect("equal")
-    ax.legend(markerscale=8)
-    ax.set_title(f"VIME {env_name}: visited states")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
 def train(cfg: DictConfig) -> dict:
     """Run VIME pre-training as configured; return the last metrics and the checkpoint path."""
     check_config(cfg)
@@ -194,15 +128,17 @@ def train(cfg: DictConfig) -> dict:
     optimizer = torch.optim.Adam(dynamics.parameters(), lr=dyn.lr)
     bonus = VIMEBonus(dynamics, eta=cfg.bonus.eta, num_samples=cfg.bonus.num_samples,
                       median_window=cfg.bonus.median_window)
-    params = TensorDict.from_module(policy)
+    surrogate = MAMLLoss(policy, num_inner_steps=0)  # TRPO's surrogate: MAML's outer objective, no inner step
     t = cfg.trpo
-    trpo = TRPOStep(params, max_kl=t.max_kl, damping=t.damping, cg_iters=t.cg_iters,
+    trpo = TRPOStep(surrogate.params, max_kl=t.max_kl, damping=t.damping, cg_iters=t.cg_iters,
                     backtrack_ratio=t.backtrack_ratio, max_backtracks=t.max_backtracks)
     meta = {"env": cfg.env.name, "obs_dim": obs_dim, "act_dim": act_dim, "policy_hidden": list(cfg.policy.hidden),
             "policy_init_std": cfg.policy.init_std, "dynamics_hidden": list(dyn.hidden),
             "prior_std": dyn.prior_std, "likelihood_std": dyn.likelihood_std}
     counters = {"iteration": 0, "frames": 0}
-    replay = holdout = first_batch = seen = None
+    replay = TensorDictReplayBuffer(storage=LazyTensorStorage(dyn.replay_size), batch_size=dyn.batch_size)
+    holdout = TensorDictReplayBuffer(storage=LazyTensorStorage(dyn.holdout_size))
+    first_batch = seen = None
     initial_coverage: dict[str, float] = {}
     # FileNotFoundError says what is missing; ValueError if the checkpoint's format or meta differ
     state = VIME_FORMAT.load_for_resume(checkpointer, meta) if cfg.resume else None
@@ -211,7 +147,10 @@ def train(cfg: DictConfig) -> dict:
         dynamics.load_state_dict(state["dynamics"])
         optimizer.load_state_dict(state["dynamics_optimizer"])
         bonus.median_history.copy_(state["median_history"])
-        replay, holdout, seen = state["replay"], state["holdout"], state["visited"]
+        for buffer, stored in ((replay, state["replay"]), (holdout, state["holdout"])):
+            if stored is not None and stored.shape[0]:
+                buffer.extend(stored)
+        seen = state["visited"]
         counters.update(state["counters"])
         initial_coverage = state["initial_coverage"]
         torch.set_rng_state(state["rng"])
@@ -220,8 +159,8 @@ def train(cfg: DictConfig) -> dict:
         keep = cfg.checkpoint.save_replay
         return save_vime_checkpoint(
             checkpointer, meta=meta, policy=policy, dynamics=dynamics, dynamics_optimizer=optimizer,
-            median_history=bonus.median_history, replay=replay if keep else None,
-            holdout=holdout if keep else None, counters=counters, initial_coverage=initial_coverage, visited=seen,
+            median_history=bonus.median_history, replay=fifo_contents(replay) if keep else None,
+            holdout=fifo_contents(holdout) if keep else None, counters=counters, initial_coverage=initial_coverage, visited=seen,
             config=cfg)
 
     if counters["iteration"] >= cfg.iterations:
@@ -248,19 +187,20 @@ def train(cfg: DictConfig) -> dict:
             reward[batch["mask"]] = reward[batch["mask"]][torch.randperm(int(batch["mask"].sum()))]
         valid = batch[batch["mask"]].select(*TRANSITION_KEYS)
         held = torch.rand(valid.shape[0]) < dyn.holdout_fraction
-        replay = append(replay, valid[~held], dyn.replay_size)
-        holdout = append(holdout, valid[held], dyn.holdout_size)
+        for buffer, part in ((replay, valid[~held]), (holdout, valid[held])):
+            if part.shape[0]:
+                buffer.extend(part)
 
         tic = time.perf_counter()
         dynamics.update_normalizer(*(valid[k] for k in TRANSITION_KEYS))
         dyn_metrics = train_dynamics(loss_fn, optimizer, replay, cfg)
-        if holdout.shape[0]:
-            dyn_metrics.update(heldout_metrics(loss_fn, holdout))
+        if len(holdout):
+            dyn_metrics.update(heldout_metrics(loss_fn, holdout[:]))
         dynamics_s = time.perf_counter() - tic
 
         tic = time.perf_counter()
         compute_advantages(batch, gamma=t.gamma, lmbda=t.gae_lambda)
-        trpo_info = trpo_update(trpo, policy, params, batch)
+        trpo_info = trpo_update(trpo, surrogate, batch)
         policy_s = time.perf_counter() - tic
 
         counters["iteration"] += 1
@@ -292,8 +232,12 @@ def train(cfg: DictConfig) -> dict:
         if counters["iteration"] % cfg.checkpoint.every == 0:
             save()
     progress.close()
-    if first_batch is not None and cfg.env.name != "half_cheetah":
-        plot_coverage(first_batch, batch, cfg.env.name, out_dir / "figures" / "coverage.png")
+    if first_batch is not None:
+        spec = get_env_spec(cfg.env.name)
+        plot_coverage(visited_states(batch, cfg.env.name), out_dir / "figures" / "coverage.png",
+                      eval_tasks=spec.task_family.eval_tasks(spec.num_eval_tasks),
+                      baseline=visited_states(first_batch, cfg.env.name), label="VIME policy",
+                      baseline_label="initial policy", title=f"VIME {cfg.env.name}: visited states")
     path = save()
     env.close()
     return {**metrics, "checkpoint": str(path)}

@@ -71,24 +71,25 @@ def test_resume_without_checkpoint_and_bad_config(tmp_path):
 
 
 def test_state_coverage_counts_cells_and_velocity_ranges():
-    recipe = load_recipe()
+    from umrl.skill_coverage import cumulative_coverage, state_coverage
+
     xy = torch.tensor([[[0.01, 0.01], [0.05, 0.02], [0.15, 0.0], [-0.05, 0.3]]])  # [N=1, H=4, 2]
     mask = torch.tensor([[True, True, True, False]])
     batch = TensorDict({("next", "position"): xy, "mask": mask}, [1, 4])
-    cov = recipe.state_coverage(batch, "point_nav", cell_size=0.1)
+    cov = state_coverage(batch, "point_nav", cell_size=0.1)
     assert cov["cells"] == 2 and cov["area"] == pytest.approx(0.02)
     assert cov["max_distance"] == pytest.approx(0.15)
     vel = TensorDict({("next", "x_velocity"): torch.linspace(-1, 3, 101).reshape(1, 101, 1),
                       "mask": torch.ones(1, 101, dtype=torch.bool)}, [1, 101])
-    cov = recipe.state_coverage(vel, "half_cheetah")
+    cov = state_coverage(vel, "half_cheetah")
     assert cov["velocity_range"] == pytest.approx(4.0)
     assert cov["velocity_range_p5_p95"] == pytest.approx(3.6, rel=1e-4)
     with pytest.raises(ValueError, match="valid choices"):
-        recipe.state_coverage(batch, "cartpole")
-    seen, cum = recipe.cumulative_coverage(None, batch, "point_nav", cell_size=0.1)
+        state_coverage(batch, "cartpole")
+    seen, cum = cumulative_coverage(None, batch, "point_nav", cell_size=0.1)
     assert cum["cumulative_cells"] == 2
     batch["next", "position"] = xy + 1.0
-    seen, cum = recipe.cumulative_coverage(seen, batch, "point_nav", cell_size=0.1)
+    seen, cum = cumulative_coverage(seen, batch, "point_nav", cell_size=0.1)
     assert cum["cumulative_cells"] == 4 and seen.shape == (4, 2)
-    seen, cum = recipe.cumulative_coverage(None, vel, "half_cheetah")
+    seen, cum = cumulative_coverage(None, vel, "half_cheetah")
     assert cum["cumulative_velocity_range"] == pytest.approx(4.0)

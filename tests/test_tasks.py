@@ -3,8 +3,8 @@ import pytest
 import torch
 from torchrl.envs.utils import check_env_specs
 
-from umrl.envs import make_task_env
-from umrl.envs.tasks import TASK_FAMILIES, get_task_family
+from umrl.envs import ENV_NAMES, make_task_env
+from umrl.envs.tasks import get_task_family
 
 
 @pytest.mark.parametrize("name, low, high, dim", [("point_nav", -0.5, 0.5, 2), ("half_cheetah", 0, 2, 1), ("ant", -3, 3, 2)])
@@ -75,4 +75,4 @@ def test_wrong_task_shape_is_rejected(bad):
 def test_unknown_family_lists_choices():
     with pytest.raises(ValueError, match="valid choices"):
         get_task_family("humanoid")
-    assert set(TASK_FAMILIES) == {"point_nav", "half_cheetah", "ant"}
+    assert set(ENV_NAMES) == {"point_nav", "half_cheetah", "ant"}

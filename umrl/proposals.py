@@ -3,8 +3,8 @@
 A proposal owns a batched env of ``T × N`` copies (task-major: copy ``t * N + n`` runs task ``t``) whose
 ``("next", "reward")`` is the task reward, and chooses the ``T`` tasks of each meta-iteration (:meth:`resample`):
 
-* ``oracle`` — the hand-designed task family (:func:`umrl.envs.tasks.get_task_family`, rewards by
-  :class:`~umrl.transforms.task_reward.TaskReward`); fresh tasks every meta-iteration.
+* ``oracle`` — the hand-designed task family (:func:`umrl.envs.get_task_family`, rewards by
+  :class:`~umrl.envs.TaskReward`); fresh tasks every meta-iteration.
 * ``diayn`` — UML-DIAYN: the task is a DIAYN skill z with reward ``log D(z|s') − log p(z)`` from a trained
   discriminator (``umrl.checkpoints.load_discriminator``); the meta-batch is every skill (or a random subset
   of ``num_tasks`` skills each meta-iteration if fewer tasks are asked for).
@@ -26,16 +26,14 @@ from dataclasses import dataclass
 import torch
 from torchrl.envs import TransformedEnv
 
-from umrl.envs import get_task_family, make_env, make_task_env
+from umrl.envs import TaskReward, get_env_spec, make_env, make_task_env
 from umrl.modules.discriminator import make_discriminator
 from umrl.transforms.discriminator_reward import DiscriminatorReward
 from umrl.transforms.skill import SkillTransform
 
 PROPOSALS = ("diayn", "random", "oracle")
-#: PROTOCOL.md: DIAYN skills (= MAML meta-batch) per env.
-DEFAULT_NUM_SKILLS = {"point_nav": 50, "half_cheetah": 20, "ant": 20}
 
-__all__ = ["DEFAULT_NUM_SKILLS", "PROPOSALS", "TaskProposal", "make_proposal"]
+__all__ = ["PROPOSALS", "TaskProposal", "make_proposal"]
 
 
 @dataclass
@@ -48,6 +46,8 @@ class TaskProposal:
         num_tasks: ``T``, tasks per meta-iteration.
         trajectories_per_task: ``N``.
         num_skills: ``K`` for skill proposals, ``None`` for oracle.
+        task_reward: the env's :class:`~umrl.envs.TaskReward` (oracle) that :meth:`resample` gives new tasks.
+        skills: the env's :class:`~umrl.transforms.skill.SkillTransform` (diayn, random) that :meth:`resample` pins.
     """
 
     name: str
@@ -55,6 +55,8 @@ class TaskProposal:
     num_tasks: int
     trajectories_per_task: int
     num_skills: int | None = None
+    task_reward: TaskReward | None = None
+    skills: SkillTransform | None = None
 
     def resample(self, generator: torch.Generator | None = None) -> torch.Tensor:
         """Choose the next meta-batch and assign it to the env copies (effective from the next reset).
@@ -62,24 +64,20 @@ class TaskProposal:
         Returns the tasks: goal/velocity parameters ``[T, task_dim]`` (oracle) or skill indices ``[T]`` (int64).
         """
         n = self.trajectories_per_task
-        if self.num_skills is None:
-            tasks = _family_of(self.env).sample(self.num_tasks, generator)
-            self.env.transform[-1].set_tasks(tasks.repeat_interleave(n, 0))
+        if self.task_reward is not None:
+            tasks = self.task_reward.family.sample(self.num_tasks, generator)
+            self.task_reward.set_tasks(tasks.repeat_interleave(n, 0))
             return tasks
         if self.num_tasks == self.num_skills:
             skills = torch.arange(self.num_skills)
         else:
             skills = torch.randperm(self.num_skills, generator=generator)[: self.num_tasks]
-        self.env.transform[-2].pin(skills.repeat_interleave(n, 0))
+        self.skills.pin(skills.repeat_interleave(n, 0))
         return skills
 
 
-def _family_of(env: TransformedEnv):
-    """The :class:`~umrl.envs.tasks.TaskFamily` of an env built by ``make_task_env`` (its last transform)."""
-    return env.transform[-1].family
-
-
-def _skill_env(env_name: str, discriminator, num_skills: int, batch: int, seed: int, horizon: int) -> TransformedEnv:
+def _skill_env(env_name: str, discriminator, num_skills: int, batch: int, seed: int, horizon: int
+               ) -> tuple[TransformedEnv, SkillTransform]:
     env = make_env(env_name, batch, seed=seed, horizon=horizon)
     obs_dim = env.observation_spec["observation"].shape[-1]
     in_features = next(p for p in discriminator.parameters()).shape[-1]
@@ -88,9 +86,10 @@ def _skill_env(env_name: str, discriminator, num_skills: int, batch: int, seed: 
             f"the discriminator reads {in_features}-D observations but {env_name} has {obs_dim}-D ones: "
             "was the DIAYN checkpoint trained on another env?"
         )
-    env.append_transform(SkillTransform(num_skills))
+    skills = SkillTransform(num_skills)
+    env.append_transform(skills)
     env.append_transform(DiscriminatorReward(discriminator, num_skills))
-    return env
+    return env, skills
 
 
 def make_proposal(
@@ -109,16 +108,16 @@ def make_proposal(
 
     Args:
         name: one of :data:`PROPOSALS`.
-        env_name: ``point_nav``, ``half_cheetah`` or ``ant``.
+        env_name: a registered env (:data:`umrl.envs.ENV_NAMES`).
 
     Keyword Args:
-        num_tasks: meta-batch ``T``; ``None``: the number of skills (diayn/random) or
-            :data:`DEFAULT_NUM_SKILLS` of the env (oracle), i.e. PROTOCOL.md's 50/20/20.
+        num_tasks: meta-batch ``T``; ``None``: the number of skills (diayn/random) or the env's
+            :attr:`~umrl.envs.EnvSpec.num_skills` (oracle), i.e. PROTOCOL.md's 50/20/20.
         trajectories_per_task: ``N`` env copies per task.
         seed: seeds the env and the random discriminator's weights.
         horizon: episode length.
-        num_skills: ``K`` of the random discriminator (default :data:`DEFAULT_NUM_SKILLS`); diayn reads it from the
-            checkpoint.
+        num_skills: ``K`` of the random discriminator (default: the env's
+            :attr:`~umrl.envs.EnvSpec.num_skills`); diayn reads it from the checkpoint.
         diayn_checkpoint: DIAYN run directory or ``step_*.pt`` file (proposal ``diayn`` only).
         discriminator_hidden: widths of the random discriminator.
     """
@@ -127,12 +126,12 @@ def make_proposal(
     if trajectories_per_task < 1 or (num_tasks is not None and num_tasks < 1):
         raise ValueError(f"need num_tasks >= 1 and trajectories_per_task >= 1, got {num_tasks} and {trajectories_per_task}.")
     n = trajectories_per_task
+    spec = get_env_spec(env_name)
     if name == "oracle":
-        family = get_task_family(env_name)
-        num_tasks = num_tasks or DEFAULT_NUM_SKILLS[env_name]
-        tasks = family.sample(num_tasks, torch.Generator().manual_seed(seed))
+        num_tasks = num_tasks or spec.num_skills
+        tasks = spec.task_family.sample(num_tasks, torch.Generator().manual_seed(seed))
         env = make_task_env(env_name, tasks.repeat_interleave(n, 0), seed=seed, horizon=horizon)
-        return TaskProposal(name, env, num_tasks, n)
+        return TaskProposal(name, env, num_tasks, n, task_reward=env.transform[-1])
     if name == "diayn":
         if diayn_checkpoint is None:
             raise ValueError("proposal=diayn needs diayn_checkpoint=<DIAYN run dir or step_*.pt file>.")
@@ -140,12 +139,11 @@ def make_proposal(
 
         discriminator, num_skills, _ = load_discriminator(diayn_checkpoint)
     else:
-        num_skills = num_skills or DEFAULT_NUM_SKILLS[env_name]
-        obs_dim = make_env(env_name, 1).observation_spec["observation"].shape[-1]
-        discriminator = make_discriminator(obs_dim, num_skills, hidden=discriminator_hidden, seed=seed)
+        num_skills = num_skills or spec.num_skills
+        discriminator = make_discriminator(spec.obs_dim, num_skills, hidden=discriminator_hidden, seed=seed)
         discriminator = discriminator.eval().requires_grad_(False)
     num_tasks = num_tasks or num_skills
     if num_tasks > num_skills:
         raise ValueError(f"num_tasks={num_tasks} exceeds the {num_skills} skills: one skill per task.")
-    env = _skill_env(env_name, discriminator, num_skills, num_tasks * n, seed, horizon)
-    return TaskProposal(name, env, num_tasks, n, num_skills=num_skills)
+    env, skills = _skill_env(env_name, discriminator, num_skills, num_tasks * n, seed, horizon)
+    return TaskProposal(name, env, num_tasks, n, num_skills=num_skills, skills=skills)

@@ -1,4 +1,6 @@
-"""Where do skills go? Final-state accuracy of the discriminator, spread metrics and the coverage figure.
+"""Where do skills and policies go? Skill end points and discriminator accuracy (DIAYN), visited-state coverage
+(VIME), and one coverage figure for both. The coordinates are each env's ``coverage_key`` (its
+:class:`~umrl.envs.EnvSpec`).
 
 :func:`evaluate_skills` rolls out every skill ``episodes_per_skill`` times (skills pinned with
 :meth:`~umrl.transforms.skill.SkillTransform.pin`) and reads, per rollout, the *final* state (the first step whose
@@ -10,7 +12,9 @@
 
 :func:`coverage_metrics` turns them into scalars (discriminator accuracy on final states; mean pairwise distance of
 all end points and of the per-skill centroids; convex-hull area of the centroids in 2-D, their std / range in 1-D).
-:func:`plot_coverage` draws the paper's Figure 5 analogue with the held-out evaluation tasks overlaid.
+:func:`state_coverage` / :func:`cumulative_coverage` count the grid cells (2-D) or the velocity range (1-D) of the
+states a batch of trajectories visited. :func:`plot_coverage` draws the paper's Figure 5 analogue (skill end points,
+or any visited points) with the held-out evaluation tasks overlaid.
 """
 from __future__ import annotations
 
@@ -22,20 +26,18 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-__all__ = ["COVERAGE_KEYS", "convex_hull_area", "coverage_metrics", "evaluate_skills", "final_states", "plot_coverage"]
+from umrl.envs import get_env_spec
 
-# env name -> (physics key, reduction over the episode): "last" for positions, "mean" for velocities
-COVERAGE_KEYS = {
-    "point_nav": ("position", "last"),
-    "ant": ("xy_position", "last"),
-    "half_cheetah": ("x_velocity", "mean"),
-}
-
-
-def _coverage_key(env_name: str) -> tuple[str, str]:
-    if env_name not in COVERAGE_KEYS:
-        raise ValueError(f"no coverage coordinates for env {env_name!r}; known: {sorted(COVERAGE_KEYS)}.")
-    return COVERAGE_KEYS[env_name]
+__all__ = [
+    "convex_hull_area",
+    "coverage_metrics",
+    "cumulative_coverage",
+    "evaluate_skills",
+    "final_states",
+    "plot_coverage",
+    "state_coverage",
+    "visited_states",
+]
 
 
 def final_states(rollout: TensorDictBase, env_name: str) -> TensorDict:
@@ -49,9 +51,9 @@ def final_states(rollout: TensorDictBase, env_name: str) -> TensorDict:
         raise ValueError("every rollout must contain a done step: roll out for at least the env's horizon.")
     last = done.float().argmax(-1)  # first done
     index = torch.arange(done.shape[0])
-    key, reduction = _coverage_key(env_name)
-    values = rollout.get(("next", key))  # [N, T, d]
-    if reduction == "last":
+    spec = get_env_spec(env_name)
+    values = rollout.get(("next", spec.coverage_key))  # [N, T, d]
+    if spec.coverage_reduction == "last":
         end_point = values[index, last]
     else:
         alive = (torch.arange(done.shape[1])[None] <= last[:, None]).unsqueeze(-1)
@@ -162,53 +164,103 @@ def coverage_metrics(result: TensorDictBase, num_skills: int, discriminator: Cal
     return metrics
 
 
+def visited_states(batch: TensorDictBase, env_name: str) -> torch.Tensor:
+    """``[M, d]`` coverage coordinates (the env's ``coverage_key``: x-y positions, forward velocities) at the valid
+    steps of a batch of trajectories (``("next", key)`` ``[..., H, d]``, ``"mask"`` ``[..., H]``)."""
+    return batch["next", get_env_spec(env_name).coverage_key][batch["mask"]]
+
+
+def _cell(env_name: str, cell_size: float | None) -> float:
+    return cell_size if cell_size is not None else get_env_spec(env_name).coverage_cell
+
+
+def state_coverage(batch: TensorDictBase, env_name: str, cell_size: float | None = None) -> dict[str, float]:
+    """Coverage of the states visited in ``batch`` (see :func:`visited_states`).
+
+    2-D coordinates: ``cells`` (distinct grid cells of side ``cell_size``, default the env's ``coverage_cell``),
+    ``area`` (cells x cell area), ``max_distance`` from the origin. 1-D (velocities): ``velocity_range`` (max - min)
+    and ``velocity_range_p5_p95``.
+    """
+    values = visited_states(batch, env_name)
+    if values.shape[-1] == 1:
+        v = values.reshape(-1)
+        low, high = torch.quantile(v, torch.tensor([0.05, 0.95]))
+        return {"velocity_range": float(v.max() - v.min()), "velocity_range_p5_p95": float(high - low)}
+    cell = _cell(env_name, cell_size)
+    cells = torch.unique(torch.floor(values / cell).long(), dim=0).shape[0]
+    return {"cells": float(cells), "area": cells * cell**2, "max_distance": float(values.norm(dim=-1).max())}
+
+
+def cumulative_coverage(
+    seen: torch.Tensor | None, batch: TensorDictBase, env_name: str, cell_size: float | None = None
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Fold ``batch`` into everything visited so far: ``seen`` is the set of visited cells ``[M, 2]`` (2-D) or the
+    ``[min, max]`` velocity (1-D), ``None`` at first. Returns the new ``seen`` and ``cumulative_cells`` / ``_area``
+    or ``cumulative_velocity_range``."""
+    values = visited_states(batch, env_name)
+    if values.shape[-1] == 1:
+        v = values.reshape(-1)
+        seen = torch.stack([v.min(), v.max()]) if seen is None else torch.stack(
+            [torch.minimum(seen[0], v.min()), torch.maximum(seen[1], v.max())])
+        return seen, {"cumulative_velocity_range": float(seen[1] - seen[0])}
+    cell = _cell(env_name, cell_size)
+    cells = torch.floor(values / cell).long()
+    seen = torch.unique(cells if seen is None else torch.cat([seen, cells]), dim=0)
+    return seen, {"cumulative_cells": float(seen.shape[0]), "cumulative_area": seen.shape[0] * cell**2}
+
+
 def plot_coverage(
-    result: TensorDictBase,
-    num_skills: int,
-    eval_tasks: torch.Tensor,
+    points: torch.Tensor,
     path: str | os.PathLike,
     *,
+    eval_tasks: torch.Tensor | None = None,
+    skills: torch.Tensor | None = None,
+    baseline: torch.Tensor | None = None,
+    label: str = "skills",
+    baseline_label: str = "random policy",
     title: str = "",
-    baseline: TensorDictBase | None = None,
 ) -> str:
-    """Save the coverage figure as a PNG at ``path`` and return the path.
+    """Save the coverage figure of ``points`` ``[N, d]`` (skill end points, or visited states) as a PNG at ``path``
+    and return the path.
 
-    2-D end points: a scatter of every rollout's final x-y coloured by skill, skill centroids as larger dots, the
-    held-out evaluation goals as red crosses (and a random policy's end points in grey if ``baseline`` is given).
-    1-D (velocities): histograms of the rollouts' mean velocities (blue), of the evaluation velocities (green) and of
-    the baseline (grey).
+    2-D: a scatter of the points (coloured by ``skills`` ``[N]`` with per-skill centroids if given), the held-out
+    ``eval_tasks`` ``[M, 2]`` as red crosses and ``baseline`` points ``[K, 2]`` in grey. 1-D (velocities):
+    histograms of the points (blue), of the evaluation velocities (green) and of the baseline (grey).
     """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    end = result.get("end_point").float()
-    skills = result.get("skill")
+    end = points.float()
     fig, ax = plt.subplots(figsize=(6, 5))
     if end.shape[-1] == 2:
         if baseline is not None:
-            b = baseline.get("end_point")
-            ax.scatter(b[:, 0], b[:, 1], s=6, c="0.7", label="random policy")
-        colors = plt.get_cmap("hsv")(torch.linspace(0, 1, num_skills + 1)[:-1].numpy())
-        ax.scatter(end[:, 0], end[:, 1], s=8, c=colors[skills.numpy()], alpha=0.6)
-        centroids = torch.stack([end[skills == k].mean(0) for k in range(num_skills)])
-        ax.scatter(centroids[:, 0], centroids[:, 1], s=40, c=colors, edgecolors="k", label="skill centroids")
-        ax.scatter(eval_tasks[:, 0], eval_tasks[:, 1], marker="x", c="r", s=50, label="eval goals")
+            ax.scatter(baseline[:, 0], baseline[:, 1], s=6, c="0.7", label=baseline_label)
+        if skills is not None:
+            num_skills = int(skills.max()) + 1
+            colors = plt.get_cmap("hsv")(torch.linspace(0, 1, num_skills + 1)[:-1].numpy())
+            ax.scatter(end[:, 0], end[:, 1], s=8, c=colors[skills.numpy()], alpha=0.6)
+            centroids = torch.stack([end[skills == k].mean(0) for k in range(num_skills)])
+            ax.scatter(centroids[:, 0], centroids[:, 1], s=40, c=colors, edgecolors="k", label=f"{label} centroids")
+        else:
+            ax.scatter(end[:, 0], end[:, 1], s=4, c="tab:red", alpha=0.4, label=label)
+        if eval_tasks is not None:
+            ax.scatter(eval_tasks[:, 0], eval_tasks[:, 1], marker="x", c="r", s=50, label="eval goals")
         ax.set_xlabel("x")
         ax.set_ylabel("y")
         ax.set_aspect("equal", adjustable="datalim")
     else:
-        values = [end[:, 0].numpy(), eval_tasks[:, 0].numpy()]
+        values = {label: (end[:, 0].numpy(), "tab:blue", 0.6)}
+        if eval_tasks is not None:
+            values["eval goal velocities"] = (eval_tasks[:, 0].numpy(), "tab:green", 0.6)
         if baseline is not None:
-            values.append(baseline.get("end_point")[:, 0].numpy())
-        low = min(float(v.min()) for v in values)
-        high = max(float(v.max()) for v in values)
+            values[baseline_label] = (baseline[:, 0].float().numpy(), "0.6", 0.5)
+        low = min(float(v.min()) for v, _, _ in values.values())
+        high = max(float(v.max()) for v, _, _ in values.values())
         bins = torch.linspace(low, high + 1e-6, 31).numpy()
-        ax.hist(values[0], bins=bins, color="tab:blue", alpha=0.6, label="skills (mean velocity)")
-        ax.hist(values[1], bins=bins, color="tab:green", alpha=0.6, label="eval goal velocities")
-        if baseline is not None:
-            ax.hist(values[2], bins=bins, color="0.6", alpha=0.5, label="random policy")
+        for name, (v, color, alpha) in values.items():
+            ax.hist(v, bins=bins, color=color, alpha=alpha, label=name)
         ax.set_xlabel("forward velocity")
         ax.set_ylabel("count")
     ax.legend(loc="best", fontsize=8)
@@ -218,5 +270,3 @@ def plot_coverage(
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return str(path)
-
-

@@ -1,19 +1,20 @@
-"""Environments: reward-free CMPs, batched, as TorchRL envs.
+"""Environments: reward-free CMPs, batched, as TorchRL envs, each described by one record in the registry.
 
 ``make_env(name, num_envs, seed=...)`` returns a ``TransformedEnv`` with batch size ``[num_envs]`` whose last
 transform is a ``StepCounter`` enforcing the horizon (``"step_count"`` ``[B, 1]``). ``make_task_env`` adds a
-:class:`~umrl.transforms.task_reward.TaskReward` with one hand-designed task per env copy.
+:class:`~umrl.envs.task_reward.TaskReward` with one hand-designed task per env copy. The envs are those of
+:data:`ENV_NAMES`: the built-in ones (:mod:`umrl.envs.builtin`) and any added with :func:`register_env`.
 """
 from __future__ import annotations
 
 import torch
-from torchrl.envs import EnvBase, StepCounter, TransformedEnv
+from torchrl.envs import StepCounter, TransformedEnv
 
-from umrl.envs.point_nav import PointNavEnv
-from umrl.envs.tasks import get_task_family
-from umrl.transforms.task_reward import TaskReward
+from umrl.envs import builtin  # noqa: F401  (registers point_nav, half_cheetah, ant)
+from umrl.envs.registry import ENV_NAMES, EnvSpec, get_env_spec, register_env, unregister_env
+from umrl.envs.task_reward import TaskReward
+from umrl.envs.tasks import TaskFamily, get_task_family
 
-ENV_NAMES = ("point_nav", "half_cheetah", "ant")
 BACKENDS = ("default", "batched", "gym")
 
 
@@ -39,23 +40,14 @@ def make_env(
         backend: MuJoCo simulation path, ``"batched"`` (default: our batched MjData env) or ``"gym"`` (TorchRL's
             wrapper over a gymnasium sync vector env, the reference). Ignored for point_nav.
     """
-    if name not in ENV_NAMES:
-        raise ValueError(f"unknown env {name!r}; valid choices: {list(ENV_NAMES)}.")
+    spec = get_env_spec(name)
     if not isinstance(num_envs, int) or num_envs < 1:
         raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}.")
     if horizon < 1:
         raise ValueError(f"horizon must be a positive integer, got {horizon!r}.")
     if backend not in BACKENDS:
         raise ValueError(f"unknown backend {backend!r}; valid choices: {list(BACKENDS)}.")
-    base: EnvBase
-    if name == "point_nav":
-        base = PointNavEnv(num_envs, device=device)
-    else:
-        from umrl.envs.mujoco import make_mujoco_env
-
-        base = make_mujoco_env(
-            name, num_envs, seed=seed, device=device, backend="batched" if backend == "default" else backend
-        )
+    base = spec.make(num_envs, seed=seed, device=device, backend=backend)
     if isinstance(base, TransformedEnv):  # the gym backend already carries transforms: extend them, don't nest
         base.append_transform(StepCounter(max_steps=horizon))
         env = base
@@ -79,4 +71,16 @@ def make_task_env(name: str, tasks: torch.Tensor, **kwargs) -> TransformedEnv:
     return env
 
 
-__all__ = ["ENV_NAMES", "get_task_family", "make_env", "make_task_env"]
+__all__ = [
+    "BACKENDS",
+    "ENV_NAMES",
+    "EnvSpec",
+    "TaskFamily",
+    "TaskReward",
+    "get_env_spec",
+    "get_task_family",
+    "make_env",
+    "make_task_env",
+    "register_env",
+    "unregister_env",
+]

@@ -1,4 +1,8 @@
-"""``TaskReward``: the hand-designed reward of a task family, one task per env copy."""
+"""``TaskReward``: the hand-designed reward of a task family, one task per env copy (what ``make_task_env`` adds).
+
+It lives with the envs (as TorchRL's transforms live in ``torchrl.envs``) because the task families it computes are
+part of each env's record; ``umrl.transforms`` re-exports it.
+"""
 from __future__ import annotations
 
 import torch
@@ -21,7 +25,7 @@ class TaskReward(Transform):
     physics keys (the replay-buffer path).
 
     Args:
-        family: the task family (see :func:`umrl.envs.tasks.get_task_family`).
+        family: the task family (see :func:`umrl.envs.get_task_family`).
         tasks: optional initial tasks ``[B, task_dim]``.
     """
 

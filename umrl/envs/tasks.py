@@ -1,6 +1,7 @@
 """Hand-designed task families: the oracle's meta-training tasks and every method's meta-test tasks.
 
-A task is a row vector of parameters (``task_dim`` floats); each env copy carries its own. Rewards follow
+A task is a row vector of parameters (``task_dim`` floats); each env copy carries its own. A family is part of its
+env's record (:class:`umrl.envs.registry.EnvSpec`); :func:`get_task_family` reads it from there. Rewards follow
 PROTOCOL.md and are computed from the physics keys that every env writes into ``"next"``:
 
 ==============  ==========  ============================  ==========================================================
@@ -15,13 +16,23 @@ Actions enter the control costs clipped to the action bounds [-1, 1], i.e. as th
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
 
+from umrl.envs.registry import get_env_spec
+
 #: Seed of the held-out evaluation tasks; never used to draw meta-training tasks.
 EVAL_TASK_SEED = 20190531
+
+
+#: ``reward(next_td, action, task) -> [B, 1]``: the task reward from the ``"next"`` physics keys, the action
+#: ``[B, act_dim]`` and the tasks ``[B, task_dim]``.
+RewardFn = Callable[[TensorDictBase, torch.Tensor, torch.Tensor], torch.Tensor]
+#: ``success(next_td, task) -> [B, 1]`` bool: where an episode ends early because the task is solved.
+SuccessFn = Callable[[TensorDictBase, torch.Tensor], torch.Tensor]
 
 
 @dataclass(frozen=True)
@@ -29,15 +40,19 @@ class TaskFamily:
     """A distribution of tasks ``U[low, high]^task_dim`` over one environment, with its reward.
 
     Attributes:
-        env_name: the environment the family belongs to.
+        env_name: the environment the family belongs to (for messages).
         task_dim: number of parameters per task.
         low, high: bounds of the uniform task distribution.
+        reward_fn: the task reward (:data:`RewardFn`).
+        success_fn: optional early-termination condition (:data:`SuccessFn`); ``None``: episodes run to the horizon.
     """
 
     env_name: str
     task_dim: int
     low: float
     high: float
+    reward_fn: RewardFn
+    success_fn: SuccessFn | None = None
 
     def sample(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
         """``n`` tasks, shape ``[n, task_dim]``."""
@@ -61,32 +76,43 @@ class TaskFamily:
 
     def reward(self, next_td: TensorDictBase, action: torch.Tensor, task: torch.Tensor) -> torch.Tensor:
         """Task reward ``[B, 1]`` from the ``"next"`` physics keys, the action ``[B, act_dim]`` and tasks ``[B, task_dim]``."""
-        ctrl = action.clamp(-1.0, 1.0).pow(2).sum(-1, keepdim=True)
-        if self.env_name == "point_nav":
-            return -(next_td["position"] - task).norm(dim=-1, keepdim=True)
-        if self.env_name == "half_cheetah":
-            return -(next_td["x_velocity"] - task).abs() - 0.05 * ctrl
-        # ant
-        distance = (next_td["xy_position"] - task).abs().sum(-1, keepdim=True)
-        return -distance + next_td["reward_survive"] + next_td["reward_contact"] - 0.5 * ctrl
+        return self.reward_fn(next_td, action, task)
 
     def goal_reached(self, next_td: TensorDictBase, task: torch.Tensor) -> torch.Tensor | None:
-        """``[B, 1]`` bool where an episode ends early on success (point_nav only), else ``None``."""
-        if self.env_name != "point_nav":
-            return None
-        return ((next_td["position"] - task).abs() < 0.01).all(-1, keepdim=True)
+        """``[B, 1]`` bool where an episode ends early on success, or ``None`` if the family has no such condition."""
+        return None if self.success_fn is None else self.success_fn(next_td, task)
 
 
-TASK_FAMILIES = {
-    "point_nav": TaskFamily("point_nav", task_dim=2, low=-0.5, high=0.5),
-    "half_cheetah": TaskFamily("half_cheetah", task_dim=1, low=0.0, high=2.0),
-    "ant": TaskFamily("ant", task_dim=2, low=-3.0, high=3.0),
-}
+def control_cost(action: torch.Tensor) -> torch.Tensor:
+    """``||clip(a, -1, 1)||^2`` ``[B, 1]``: the action as the simulator applied it."""
+    return action.clamp(-1.0, 1.0).pow(2).sum(-1, keepdim=True)
+
+
+def goal_distance_reward(next_td: TensorDictBase, action: torch.Tensor, task: torch.Tensor) -> torch.Tensor:
+    """point_nav: ``-||position - goal||_2``."""
+    return -(next_td["position"] - task).norm(dim=-1, keepdim=True)
+
+
+def goal_within(tolerance: float) -> SuccessFn:
+    """point_nav's success: every coordinate of ``"position"`` within ``tolerance`` of the goal."""
+
+    def success(next_td: TensorDictBase, task: torch.Tensor) -> torch.Tensor:
+        return ((next_td["position"] - task).abs() < tolerance).all(-1, keepdim=True)
+
+    return success
+
+
+def target_velocity_reward(next_td: TensorDictBase, action: torch.Tensor, task: torch.Tensor) -> torch.Tensor:
+    """half_cheetah: ``-|v_x - v| - 0.05 ||a||^2``."""
+    return -(next_td["x_velocity"] - task).abs() - 0.05 * control_cost(action)
+
+
+def ant_goal_reward(next_td: TensorDictBase, action: torch.Tensor, task: torch.Tensor) -> torch.Tensor:
+    """ant: ``-||xy - goal||_1 + healthy reward + contact reward - 0.5 ||a||^2``."""
+    distance = (next_td["xy_position"] - task).abs().sum(-1, keepdim=True)
+    return -distance + next_td["reward_survive"] + next_td["reward_contact"] - 0.5 * control_cost(action)
 
 
 def get_task_family(env_name: str) -> TaskFamily:
-    """The hand-designed task family of ``env_name``."""
-    try:
-        return TASK_FAMILIES[env_name]
-    except KeyError:
-        raise ValueError(f"no task family for env {env_name!r}; valid choices: {sorted(TASK_FAMILIES)}.") from None
+    """The hand-designed task family of the registered env ``env_name`` (its :class:`~umrl.envs.registry.EnvSpec`)."""
+    return get_env_spec(env_name).task_family
