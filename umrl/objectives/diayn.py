@@ -6,20 +6,22 @@ https://arxiv.org/abs/1806.04640) keeps D as a task proposal: r_z(s) = log D(z|s
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from tensordict.nn import TensorDictModule, TensorDictModuleBase
+from tensordict.nn import CudaGraphModule, TensorDictModule, TensorDictModuleBase
 from tensordict.utils import NestedKey, unravel_key
+from torchrl._utils import compile_with_warmup
 from torchrl.data import TensorSpec
 from torchrl.modules import ProbabilisticActor
-from torchrl.objectives import LossModule, SACLoss
+from torchrl.objectives import LossModule, SACLoss, SoftUpdate
 from torchrl.objectives.utils import ValueEstimators
 
 from umrl.transforms.discriminator_reward import DiscriminatorReward
 
-__all__ = ["DIAYNLoss"]
+__all__ = ["DIAYNLoss", "DIAYNUpdate", "make_diayn_optimizers"]
 
 
 class DIAYNLoss(LossModule):
@@ -189,3 +191,129 @@ class DIAYNLoss(LossModule):
         out.set("discriminator_accuracy", accuracy)
         out.set("pseudo_reward", data.get(("next", self.tensor_keys.reward)).mean().detach())
         return out
+
+#: ``torch.compile`` modes accepted by :class:`DIAYNUpdate`'s ``compile``.
+COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
+
+
+def make_diayn_optimizers(
+    loss: DIAYNLoss, *, lr: float, discriminator_lr: float, capturable: bool = False
+) -> dict[str, torch.optim.Optimizer]:
+    """Adam for each parameter group of a :class:`DIAYNLoss`: ``{"actor", "qvalue", "discriminator"[, "alpha"]}``.
+
+    ``"alpha"`` is present only for a learned alpha (``fixed_alpha=False``). ``capturable=True`` keeps Adam's step
+    counters on the parameters' device, which CUDA graphs need (:class:`DIAYNUpdate` with ``cudagraphs=True``).
+    """
+    sac = loss.sac_loss
+    adam = dict(capturable=capturable)
+    optimizers = {
+        "actor": torch.optim.Adam(list(sac.actor_network_params.values(True, True)), lr=lr, **adam),
+        "qvalue": torch.optim.Adam(list(sac.qvalue_network_params.values(True, True)), lr=lr, **adam),
+        "discriminator": torch.optim.Adam(list(loss.discriminator.parameters()), lr=discriminator_lr, **adam),
+    }
+    if not loss.fixed_alpha:
+        optimizers["alpha"] = torch.optim.Adam([sac.log_alpha], lr=lr, **adam)
+    return optimizers
+
+
+class DIAYNUpdate:
+    """One DIAYN gradient update: loss -> backward -> every optimiser's step -> soft update of the target Q-nets.
+
+    The one place a SAC + discriminator update happens, modelled on TorchRL's ``sota-implementations/sac``: the same
+    function runs eagerly, under ``torch.compile`` and/or captured in a CUDA graph
+    (:class:`tensordict.nn.CudaGraphModule`). It never synchronises with the host, so a GPU runs updates back to
+    back; check the returned losses for finiteness once per batch of updates, not per update.
+
+    Args:
+        loss (DIAYNLoss): the loss; its parameters (and the batches passed in) live on one device.
+        optimizers (mapping of str to Optimizer): e.g. :func:`make_diayn_optimizers`; each is stepped and zeroed
+            (``set_to_none``) once per update.
+
+    Keyword Args:
+        tau (float): Polyak rate of the target Q-networks (TorchRL's :class:`~torchrl.objectives.SoftUpdate`).
+        compile (bool or str): ``torch.compile`` the update (after one eager warm-up call). ``True`` picks TorchRL's
+            mode rule (``"default"`` with CUDA graphs, else ``"reduce-overhead"``); a string is the mode. Compiled
+            updates draw SAC's action noise from inductor's RNG, so they do not reproduce eager numbers bit for bit.
+        cudagraphs (bool): capture the update in a CUDA graph (CUDA only; the optimisers must be ``capturable``).
+            Every batch must then have the same shape and device.
+
+    ``update(batch)`` takes a replay sample (the keys :class:`DIAYNLoss` reads, batch [B]) and returns the loss's
+    output TensorDict, detached (``loss_*``, ``alpha``, ``entropy``, ``discriminator_accuracy``, ``pseudo_reward``).
+
+    Examples:
+        >>> from umrl.modules.discriminator import make_discriminator
+        >>> from umrl.modules.sac import make_skill_actor, make_skill_qvalue
+        >>> K = 4
+        >>> loss = DIAYNLoss(make_skill_actor(2, K, 2, hidden=(16,)), make_skill_qvalue(2, K, 2, hidden=(16,)),
+        ...                  make_discriminator(2, K, hidden=(16,)), num_skills=K)
+        >>> update = DIAYNUpdate(loss, make_diayn_optimizers(loss, lr=1e-3, discriminator_lr=1e-3), tau=0.01)
+        >>> skill = torch.eye(K)[torch.randint(K, (8,))]
+        >>> batch = TensorDict({
+        ...     "observation": torch.randn(8, 2), "skill": skill, "action": torch.rand(8, 2) * 2 - 1,
+        ...     "next": {"observation": torch.randn(8, 2), "skill": skill, "reward": torch.zeros(8, 1),
+        ...              "done": torch.zeros(8, 1, dtype=torch.bool),
+        ...              "terminated": torch.zeros(8, 1, dtype=torch.bool)}}, [8])
+        >>> update(batch)["loss_discriminator"].requires_grad
+        False
+    """
+
+    def __init__(
+        self,
+        loss: DIAYNLoss,
+        optimizers: Mapping[str, torch.optim.Optimizer],
+        *,
+        tau: float,
+        compile: bool | str = False,
+        cudagraphs: bool = False,
+    ):
+        if isinstance(compile, str) and compile not in COMPILE_MODES:
+            raise ValueError(f"compile mode {compile!r} is not one of {COMPILE_MODES} (or True / False).")
+        device = next(loss.parameters()).device
+        if cudagraphs:
+            if device.type != "cuda":
+                raise ValueError(
+                    f"cudagraphs=True needs the loss on a CUDA device, its parameters are on {device}; "
+                    "pass cudagraphs=False (recipe: optim.cudagraphs=false)."
+                )
+            eager = [name for name, opt in optimizers.items()
+                     if not all(group.get("capturable", False) for group in opt.param_groups)]
+            if eager:
+                raise ValueError(
+                    f"cudagraphs=True needs capturable optimisers; {eager} are not: build them with "
+                    "make_diayn_optimizers(..., capturable=True)."
+                )
+        self.loss = loss
+        self.optimizers = dict(optimizers)
+        self.target_updater = SoftUpdate(loss.sac_loss, tau=tau)
+        self.compile_mode = None
+        if compile:
+            self.compile_mode = compile if isinstance(compile, str) else (
+                "default" if cudagraphs else "reduce-overhead")
+        self.cudagraphs = cudagraphs
+        step = self._step
+        if self.compile_mode is not None:
+            step = compile_with_warmup(step, mode=self.compile_mode, warmup=1)
+        if cudagraphs:
+            step = CudaGraphModule(step, in_keys=[], out_keys=[], warmup=5, device=device)
+        self._update = step
+
+    def _step(self, batch: TensorDictBase) -> TensorDictBase:
+        out = self.loss(batch)
+        sum(out[key] for key in out.keys() if key.startswith("loss_")).backward()
+        for optimizer in self.optimizers.values():
+            optimizer.step()
+            optimizer.zero_grad(set_to_none=True)
+        self.target_updater.step()
+        return out.detach()
+
+    def __call__(self, batch: TensorDictBase) -> TensorDictBase:
+        if self.cudagraphs:
+            torch.compiler.cudagraph_mark_step_begin()
+        try:
+            out = self._update(batch)
+        except (torch._dynamo.exc.TorchDynamoException, torch._inductor.exc.InductorError) as err:
+            raise RuntimeError(
+                f"torch.compile failed on the DIAYN update (compile={self.compile_mode!r}): {err}\n"
+                "Turn it off with compile=False (recipe: optim.compile=false)."
+            ) from err
+        return out.clone() if self.cudagraphs else out  # a CUDA graph overwrites its outputs at the next call
