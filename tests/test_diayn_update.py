@@ -95,7 +95,7 @@ def test_update_trains_on_cuda(cudagraphs):
         out = update(batches[i % len(batches)])
     assert all(v.device.type == "cuda" for v in TensorDict.from_module(loss).values(True, True))
     assert out["loss_discriminator"].device.type == "cuda"
-    assert torch.isfinite(torch.stack([out[k] for k in out.keys() if k.startswith("loss_")])).all()
+    assert torch.isfinite(torch.stack([v for k, v in out.items() if k.startswith("loss_")])).all()
     assert out["loss_discriminator"] < 0.5 * first["loss_discriminator"]
     assert out["discriminator_accuracy"] > 0.9
 

@@ -205,7 +205,7 @@ def make_diayn_optimizers(
     counters on the parameters' device, which CUDA graphs need (:class:`DIAYNUpdate` with ``cudagraphs=True``).
     """
     sac = loss.sac_loss
-    adam = dict(capturable=capturable)
+    adam = {"capturable": capturable}
     optimizers = {
         "actor": torch.optim.Adam(list(sac.actor_network_params.values(True, True)), lr=lr, **adam),
         "qvalue": torch.optim.Adam(list(sac.qvalue_network_params.values(True, True)), lr=lr, **adam),
@@ -299,7 +299,7 @@ class DIAYNUpdate:
 
     def _step(self, batch: TensorDictBase) -> TensorDictBase:
         out = self.loss(batch)
-        sum(out[key] for key in out.keys() if key.startswith("loss_")).backward()
+        sum(value for key, value in out.items() if key.startswith("loss_")).backward()
         for optimizer in self.optimizers.values():
             optimizer.step()
             optimizer.zero_grad(set_to_none=True)
