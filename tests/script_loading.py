@@ -1,9 +1,12 @@
-"""Helpers for tests of the Hydra scripts in recipes/ and benchmarks/: import a script, compose its config."""
+"""Helpers for tests of the Hydra scripts in benchmarks/: import a script, compose its config (recipes are a package:
+``from recipes import compose``)."""
 import importlib.util
 from pathlib import Path
 
-from hydra import compose, initialize_config_dir
+from hydra import compose
 from omegaconf import DictConfig
+
+from recipes import config_dir
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -17,7 +20,7 @@ def load_script(relative_path: str):
     return module
 
 
-def compose_config(config_dir: str, name: str, overrides) -> DictConfig:
-    """Compose Hydra config ``name`` from ``REPO/config_dir`` with ``overrides``."""
-    with initialize_config_dir(config_dir=str(REPO / config_dir), version_base="1.3"):
+def compose_config(directory: str, name: str, overrides) -> DictConfig:
+    """Compose Hydra config ``name`` from ``REPO/directory`` with ``overrides``."""
+    with config_dir(REPO / directory):
         return compose(name, overrides=list(overrides))

@@ -4,20 +4,23 @@ import sys
 
 import pytest
 import torch
-from script_loading import REPO, compose_config, load_script
+from script_loading import REPO
 from tensordict import TensorDict
 
+from recipes import compose
 from umrl.checkpoints import load_diayn_checkpoint, load_discriminator, load_skill_policy
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
 
 def load_recipe():
-    return load_script("recipes/diayn.py")
+    import recipes.diayn
+
+    return recipes.diayn
 
 
 def tiny_config(output_dir, *overrides):
-    return compose_config("recipes/config", "diayn", [
+    return compose("diayn", [
             "logger.backend=none", "progress=false", f"output_dir={output_dir}", "num_skills=3",
             "env.num_envs=4", "env.horizon=10", "collector.frames_per_batch=40", "collector.total_frames=120",
             "collector.init_random_frames=40", "optim.updates_per_frame=0.25", "network.hidden=[16,16]",

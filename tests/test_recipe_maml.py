@@ -1,19 +1,18 @@
 """recipes/maml.py smoke tests: two meta-iterations per proposal on tiny settings, kept checkpoints, resume."""
 import pytest
 import torch
-from script_loading import compose_config, load_script
 
+from recipes import compose
+from recipes.maml import train
 from umrl.checkpoints import load_maml_checkpoint, load_maml_policy
 from umrl.runtime import Checkpointer
-
-train = load_script("recipes/maml.py").train
 
 TINY = ["env.horizon=10", "meta_batch_size=2", "trajectories_per_task=3", "policy.hidden=[16]",
         "logger.backend=none", "progress=false", "checkpoint.every=1", "trpo.cg_iters=3", "num_skills=4"]
 
 
 def _cfg(tmp_path, *overrides):
-    return compose_config("recipes/config", "maml", [*TINY, f"output_dir={tmp_path}", *overrides])
+    return compose("maml", [*TINY, f"output_dir={tmp_path}", *overrides])
 
 
 @pytest.mark.parametrize("proposal", ["oracle", "random", "diayn"])

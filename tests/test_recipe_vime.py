@@ -2,21 +2,23 @@
 
 import pytest
 import torch
-from script_loading import compose_config, load_script
 from tensordict import TensorDict
 from torchrl.modules import ProbabilisticActor
 
+from recipes import compose
 from umrl.checkpoints import load_vime_checkpoint, load_vime_dynamics, load_vime_policy
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
 
 def load_recipe():
-    return load_script("recipes/vime.py")
+    import recipes.vime
+
+    return recipes.vime
 
 
 def tiny_config(output_dir, *overrides):
-    return compose_config("recipes/config", "vime", [
+    return compose("vime", [
             "logger.backend=none", "progress=false", f"output_dir={output_dir}", "iterations=2",
             "env.num_envs=4", "env.horizon=10", "policy.hidden=[16,16]", "dynamics.updates_per_iteration=3",
             "dynamics.batch_size=8", "dynamics.holdout_fraction=0.25", "checkpoint.every=1", *overrides,
@@ -93,3 +95,15 @@ def test_state_coverage_counts_cells_and_velocity_ranges():
     assert cum["cumulative_cells"] == 4 and seen.shape == (4, 2)
     seen, cum = cumulative_coverage(None, vel, "half_cheetah")
     assert cum["cumulative_velocity_range"] == pytest.approx(4.0)
+
+
+def test_fifo_buffer_keeps_the_newest_transitions_oldest_first():
+    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+    from recipes.vime import fifo_contents
+
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(5))
+    for chunk in (torch.arange(3.0), torch.arange(3.0, 4.0), torch.arange(4.0, 11.0)):
+        buffer.extend(TensorDict({"x": chunk}, [chunk.shape[0]]))
+        everything = torch.arange(float(chunk[-1]) + 1)
+        torch.testing.assert_close(fifo_contents(buffer)["x"], everything[-5:])  # the old torch.cat(...)[-size:]
