@@ -1,0 +1,7 @@
+"""umrl: unsupervised meta-reinforcement learning on TorchRL.
+
+Subpackages, lowest layer first (each imports only from the ones before it): :mod:`umrl.envs` (environments and
+their registry, task families), :mod:`umrl.transforms`, :mod:`umrl.modules`, :mod:`umrl.objectives` and
+:mod:`umrl.optim`, :mod:`umrl.rollout`, :mod:`umrl.checkpoints`, :mod:`umrl.metatest`; the training recipes are the
+``recipes`` package.
+"""
