@@ -83,6 +83,23 @@ def test_bad_options():
         DIAYNUpdate(loss, make_diayn_optimizers(loss, lr=1e-3, discriminator_lr=1e-3), tau=0.01, compile="fast")
 
 
+def test_compile_failure_names_the_option_and_the_way_out(monkeypatch):
+    """torch.compile compiles lazily (second call); a Dynamo failure there is re-raised saying how to turn it off."""
+
+    def unsupported(fn, **kwargs):
+        def run(*args):
+            raise torch._dynamo.exc.TorchDynamoException("unsupported op")
+        return run
+
+    monkeypatch.setattr(torch, "compile", unsupported)
+    loss = make_loss()
+    update = DIAYNUpdate(loss, make_diayn_optimizers(loss, lr=1e-3, discriminator_lr=1e-3), tau=0.01, compile=True)
+    batch = make_batches(1)[0]
+    update(batch)  # the eager warm-up call
+    with pytest.raises(RuntimeError, match=r"(?s)compile='reduce-overhead'.*unsupported op.*compile=False"):
+        update(batch)
+
+
 @cuda
 @pytest.mark.parametrize("cudagraphs", [False, True])
 def test_update_trains_on_cuda(cudagraphs):

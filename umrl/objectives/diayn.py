@@ -290,6 +290,8 @@ class DIAYNUpdate:
             self.compile_mode = compile if isinstance(compile, str) else (
                 "default" if cudagraphs else "reduce-overhead")
         self.cudagraphs = cudagraphs
+        # CUDA graphs (ours, or inductor's in these modes) reuse their output buffers at the next call
+        self._static_outputs = cudagraphs or self.compile_mode in ("reduce-overhead", "max-autotune")
         step = self._step
         if self.compile_mode is not None:
             step = compile_with_warmup(step, mode=self.compile_mode, warmup=1)
@@ -307,7 +309,7 @@ class DIAYNUpdate:
         return out.detach()
 
     def __call__(self, batch: TensorDictBase) -> TensorDictBase:
-        if self.cudagraphs:
+        if self._static_outputs:
             torch.compiler.cudagraph_mark_step_begin()
         try:
             out = self._update(batch)
@@ -316,4 +318,4 @@ class DIAYNUpdate:
                 f"torch.compile failed on the DIAYN update (compile={self.compile_mode!r}): {err}\n"
                 "Turn it off with compile=False (recipe: optim.compile=false)."
             ) from err
-        return out.clone() if self.cudagraphs else out  # a CUDA graph overwrites its outputs at the next call
+        return out.clone() if self._static_outputs else out
