@@ -48,14 +48,14 @@ from torchrl.collectors import Collector
 from torchrl.envs import StepCounter, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from umrl.envs import make_env
+from umrl.envs import ENV_NAMES, make_env
 from umrl.envs.mujoco_batched import BATCHED_ENVS, MODEL_SPECS
 from umrl.modules.policy import make_gaussian_policy
 from umrl.rollout import collect
 
 warnings.filterwarnings("ignore", message=".*settotalmass.*")
 
-ALL_ENVS = ("point_nav", "half_cheetah", "ant")
+ALL_ENVS = tuple(ENV_NAMES)
 NUM_CPUS = len(os.sched_getaffinity(0))
 GYM_VEC = "gymnasium sync vector env, bare"
 

@@ -14,7 +14,7 @@ Python thread pool, one ``MjData`` per thread (``mj_step`` releases the GIL, the
 
 Keys (``B`` = batch size, all float32 unless noted): ``"observation"`` ``[B, obs_dim]``, ``"action"`` ``[B, act_dim]``
 in ``[-1, 1]``, ``("next", "reward")`` ``[B, 1]`` zeros (reward-free CMP), ``"env_reward"`` ``[B, 1]`` gymnasium's
-reward (0 at reset), the physics keys of :data:`PHYSICS_KEYS` (0 at reset for velocities and reward terms), and
+reward (0 at reset), the physics keys of the env's registry record (0 at reset for velocities and reward terms), and
 ``"done"``/``"terminated"``/``"truncated"`` ``[B, 1]`` bool. No time limit: wrap with ``StepCounter``.
 
 Resume: the reset-noise generator is the env's only random state; ``set_seed`` seeds it, :attr:`rng_state` reads
@@ -39,16 +39,11 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from umrl.envs.mujoco_log import disable_mujoco_log_file
+from umrl.envs.registry import get_env_spec
 
 disable_mujoco_log_file()  # MuJoCo warnings go to the console, not to ./MUJOCO_LOG.TXT
 
 ASSETS_DIR = os.path.join(os.path.dirname(gymnasium.__file__), "envs", "mujoco", "assets")
-
-# Width of each physics key written at every step and reset (see CONTRACTS.md).
-PHYSICS_KEYS: dict[str, dict[str, int]] = {
-    "half_cheetah": {"x_position": 1, "x_velocity": 1},
-    "ant": {"xy_position": 2, "x_velocity": 1, "reward_survive": 1, "reward_contact": 1},
-}
 
 _STATE = int(mujoco.mjtState.mjSTATE_INTEGRATION)
 _MIN_COPIES_PER_THREAD = 16
@@ -79,9 +74,14 @@ def _state_slice(model: mujoco.MjModel, component: mujoco.mjtState) -> slice:
     return slice(start, start + mujoco.mj_stateSize(model, int(component)))
 
 
+def physics_keys(name: str) -> dict[str, int]:
+    """Width of each physics key env ``name`` writes at every step and reset (its registry record's)."""
+    return dict(get_env_spec(name).physics_keys)
+
+
 def physics_spec(name: str, num_envs: int, device: torch.device | str) -> Composite:
     """Specs of ``"env_reward"`` and the physics keys of env ``name`` (float32, ``[num_envs, width]``)."""
-    widths = {"env_reward": 1, **PHYSICS_KEYS[name]}
+    widths = {"env_reward": 1, **physics_keys(name)}
     return Composite(
         {key: Unbounded((num_envs, w), dtype=torch.float32, device=device) for key, w in widths.items()},
         shape=(num_envs,),
@@ -277,7 +277,7 @@ class BatchedMujocoEnv(EnvBase):
     def _physics_at_reset(self) -> dict[str, np.ndarray]:
         """Physics keys at reset: positions from the state; velocities and reward terms 0 (as in gymnasium's info)."""
         B = self.batch_size[0]
-        out = {k: np.zeros((B, w)) for k, w in PHYSICS_KEYS[self.NAME].items()}
+        out = {k: np.zeros((B, w)) for k, w in physics_keys(self.NAME).items()}
         position_key = "xy_position" if "xy_position" in out else "x_position"
         out[position_key] = self._qstate[:, : out[position_key].shape[1]]
         return out

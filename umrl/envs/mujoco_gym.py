@@ -15,7 +15,7 @@ from torchrl.data import Composite, Unbounded
 from torchrl.envs import Compose, DoubleToFloat, GymWrapper, Transform, TransformedEnv
 from torchrl.envs.gym_like import BaseInfoDictReader
 
-from umrl.envs.mujoco_batched import MODEL_SPECS, PHYSICS_KEYS, physics_spec
+from umrl.envs.mujoco_batched import MODEL_SPECS, physics_keys, physics_spec
 
 # Physics key -> the gymnasium info keys stacked into it (missing keys, e.g. velocities at reset, read as 0).
 _INFO_SOURCES = {
@@ -32,7 +32,7 @@ class PhysicsInfoReader(BaseInfoDictReader):
 
     def __init__(self, name: str, num_envs: int, device: torch.device | str = "cpu"):
         self.num_envs = num_envs
-        self.keys = PHYSICS_KEYS[name]
+        self.keys = physics_keys(name)
         self._info_spec = physics_spec(name, num_envs, device)
         del self._info_spec["env_reward"]
 
