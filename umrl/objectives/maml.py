@@ -56,8 +56,10 @@ class MAMLLoss(LossModule):
         num_inner_steps: inner steps (default 1). Every step uses the same support batch. ``0`` makes ``adapt`` the
             identity, so the loss is plain policy gradient on the query batch.
         first_order: drop the second-order terms (FOMAML): inner gradients are treated as constants.
-        task_loop: evaluate per-task parameters with a Python loop over tasks (``True``), with ``vmap`` (``False``)
-            or whichever is faster for the batch at hand (``None``, default; see :class:`umrl.rollout.FunctionalPolicy`).
+        task_loop: evaluate per-task parameters all at once with one batched matmul per layer (``None``, default),
+            with ``vmap`` (``False``) or with a Python loop over tasks (``True``, the per-task reference); see
+            :class:`umrl.rollout.FunctionalPolicy`. The inner step, surrogate, KL and Hessian-vector products all go
+            through it, so with the default no Python loop over tasks runs on the learning step's hot path.
 
     Inputs to :meth:`forward` (both ``[T, N, H]``, see :func:`umrl.rollout.collect`): ``support`` with
     ``"observation"``, ``"action"``, ``"advantage"``, ``"mask"``, ``("next", "reward")``; ``query`` with the same
