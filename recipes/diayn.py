@@ -53,6 +53,7 @@ from umrl.runtime import (
 from umrl.skill_coverage import coverage_metrics, evaluate_skills, plot_coverage
 from umrl.transforms.discriminator_reward import DiscriminatorReward
 from umrl.transforms.skill import SkillTransform
+from umrl.validation import resolve_device
 
 
 def resolve_num_skills(cfg: DictConfig) -> int:
@@ -82,7 +83,7 @@ def check_config(cfg: DictConfig) -> None:
 
 
 def make_skill_env(cfg: DictConfig, num_envs: int, num_skills: int, seed: int, discriminator=None):
-    env = make_env(cfg.env.name, num_envs, seed=seed, device=cfg.device, horizon=cfg.env.horizon,
+    env = make_env(cfg.env.name, num_envs, seed=seed, device=resolve_device("device", cfg.device), horizon=cfg.env.horizon,
                    backend=cfg.env.backend)
     env.append_transform(SkillTransform(num_skills))
     if discriminator is not None:
@@ -111,6 +112,7 @@ def train(cfg: DictConfig) -> dict:
     num_skills = resolve_num_skills(cfg)
     torch.set_num_threads(cfg.num_threads)
     seed_everything(cfg.seed)
+    device = torch.device(resolve_device("device", cfg.device))  # networks, loss, replay storage and envs
     out_dir = Path(cfg.output_dir)
     checkpointer = Checkpointer(out_dir / "checkpoints", keep_all=cfg.checkpoint.keep_all)
 
@@ -124,11 +126,12 @@ def train(cfg: DictConfig) -> dict:
             "discriminator_observation_key": ["next", "observation"]}
     # FileNotFoundError says what is missing; ValueError if the checkpoint's format or meta differ
     state = DIAYN_FORMAT.load_for_resume(checkpointer, meta) if cfg.resume else None
-    actor = make_skill_actor(obs_dim, num_skills, act_dim, hidden=hidden)
-    discriminator = make_discriminator(obs_dim, num_skills, hidden=disc_hidden)
-    loss = DIAYNLoss(actor, make_skill_qvalue(obs_dim, num_skills, act_dim, hidden=hidden), discriminator,
-                     num_skills=num_skills, alpha_init=cfg.optim.alpha, fixed_alpha=cfg.optim.fixed_alpha,
-                     target_entropy=-float(act_dim))
+    # initialised on the CPU (the same weights on every device), then moved before the loss copies their parameters
+    actor = make_skill_actor(obs_dim, num_skills, act_dim, hidden=hidden).to(device)
+    discriminator = make_discriminator(obs_dim, num_skills, hidden=disc_hidden).to(device)
+    qvalue = make_skill_qvalue(obs_dim, num_skills, act_dim, hidden=hidden).to(device)
+    loss = DIAYNLoss(actor, qvalue, discriminator, num_skills=num_skills, alpha_init=cfg.optim.alpha,
+                     fixed_alpha=cfg.optim.fixed_alpha, target_entropy=-float(act_dim)).to(device)
     loss.make_value_estimator(gamma=cfg.optim.gamma)
     target_updater = SoftUpdate(loss.sac_loss, tau=cfg.optim.tau)
     sac = loss.sac_loss
@@ -163,7 +166,7 @@ def train(cfg: DictConfig) -> dict:
         init_random_frames=0 if state is not None else cfg.collector.init_random_frames,
         auto_register_policy_transforms=False,
     )
-    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(cfg.replay_buffer.size),
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(cfg.replay_buffer.size, device=device),
                                     batch_size=cfg.replay_buffer.batch_size)
     warmup = max(cfg.collector.init_random_frames, cfg.replay_buffer.batch_size)
 

@@ -38,6 +38,7 @@ from umrl.optim.trpo import TRPOStep
 from umrl.proposals import make_proposal
 from umrl.rollout import collect
 from umrl.runtime import Checkpointer, check_finite, log_metrics, make_logger, seed_everything
+from umrl.validation import resolve_device
 
 HVP_MODES = ("gauss_newton", "exact")
 
@@ -98,15 +99,18 @@ def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPO
 
 
 def build(cfg: DictConfig):
-    """``(proposal, policy, loss, trpo)`` from the config (shared with ``benchmarks/meta_iteration.py``)."""
+    """``(proposal, policy, loss, trpo)`` from the config (shared with ``benchmarks/meta_iteration.py``); the
+    policy, the loss, TRPO's state and the proposal's env and discriminator live on ``cfg.device``."""
+    device = torch.device(resolve_device("device", cfg.device))
     proposal = make_proposal(
         cfg.proposal, cfg.env.name, num_tasks=cfg.meta_batch_size, trajectories_per_task=cfg.trajectories_per_task,
         seed=cfg.seed, horizon=cfg.env.horizon, num_skills=cfg.num_skills,
-        diayn_checkpoint=cfg.diayn_checkpoint if cfg.proposal == "diayn" else None,
+        diayn_checkpoint=cfg.diayn_checkpoint if cfg.proposal == "diayn" else None, device=device,
     )
     env = proposal.env
     obs_dim, act_dim = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
     policy = make_gaussian_policy(obs_dim, act_dim, hidden=list(cfg.policy.hidden), init_std=cfg.policy.init_std)
+    policy = policy.to(device)  # initialised on the CPU: the same weights on every device
     loss = MAMLLoss(policy, inner_lr=cfg.maml.inner_lr, num_inner_steps=cfg.maml.num_inner_steps,
                     first_order=cfg.maml.first_order, task_loop=cfg.maml.task_loop)
     trpo = TRPOStep(loss.params, max_kl=cfg.trpo.max_kl, damping=cfg.trpo.damping, cg_iters=cfg.trpo.cg_iters,

@@ -51,6 +51,7 @@ from umrl.rollout import collect
 from umrl.runtime import Checkpointer, check_finite, log_metrics, make_logger, seed_everything
 from umrl.skill_coverage import cumulative_coverage, plot_coverage, state_coverage, visited_states
 from umrl.transforms.vime_bonus import VIMEBonus
+from umrl.validation import resolve_device
 
 TRANSITION_KEYS = ("observation", "action", ("next", "observation"))
 
@@ -73,7 +74,7 @@ def fifo_contents(buffer: ReplayBuffer) -> TensorDictBase:
     """The transitions held by a FIFO ``buffer`` (a round-robin ``LazyTensorStorage``), oldest first."""
     data = buffer[:]
     if buffer.write_count > len(buffer):  # wrapped: the oldest entry sits at the write cursor
-        data = data[(torch.arange(len(buffer)) + buffer.write_count) % len(buffer)]
+        data = data[(torch.arange(len(buffer), device=data.device) + buffer.write_count) % len(buffer)]
     return data
 
 
@@ -114,20 +115,23 @@ def train(cfg: DictConfig) -> dict:
     """Run VIME pre-training as configured; return the last metrics and the checkpoint path."""
     check_config(cfg)
     seed_everything(cfg.seed)
+    device = torch.device(resolve_device("device", cfg.device))  # networks, replay storage, env outputs
     out_dir = Path(cfg.output_dir)
     checkpointer = Checkpointer(out_dir / "checkpoints", keep_all=cfg.checkpoint.keep_all)
 
-    env = make_env(cfg.env.name, cfg.env.num_envs, seed=cfg.seed, device=cfg.device, horizon=cfg.env.horizon,
+    env = make_env(cfg.env.name, cfg.env.num_envs, seed=cfg.seed, device=device, horizon=cfg.env.horizon,
                    backend=cfg.env.backend)
     obs_dim, act_dim = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
-    policy = make_gaussian_policy(obs_dim, act_dim, hidden=list(cfg.policy.hidden), init_std=cfg.policy.init_std)
+    # initialised on the CPU (the same weights on every device), then moved
+    policy = make_gaussian_policy(obs_dim, act_dim, hidden=list(cfg.policy.hidden),
+                                  init_std=cfg.policy.init_std).to(device)
     dyn = cfg.dynamics
     dynamics = BayesianDynamics(obs_dim, act_dim, hidden=list(dyn.hidden), prior_std=dyn.prior_std,
-                                likelihood_std=dyn.likelihood_std, init_std=dyn.init_std)
+                                likelihood_std=dyn.likelihood_std, init_std=dyn.init_std).to(device)
     loss_fn = VIMELoss(dynamics, dataset_size=1, num_samples=dyn.num_samples)
     optimizer = torch.optim.Adam(dynamics.parameters(), lr=dyn.lr)
     bonus = VIMEBonus(dynamics, eta=cfg.bonus.eta, num_samples=cfg.bonus.num_samples,
-                      median_window=cfg.bonus.median_window)
+                      median_window=cfg.bonus.median_window).to(device)
     surrogate = MAMLLoss(policy, num_inner_steps=0)  # TRPO's surrogate: MAML's outer objective, no inner step
     t = cfg.trpo
     trpo = TRPOStep(surrogate.params, max_kl=t.max_kl, damping=t.damping, cg_iters=t.cg_iters,
@@ -136,8 +140,9 @@ def train(cfg: DictConfig) -> dict:
             "policy_init_std": cfg.policy.init_std, "dynamics_hidden": list(dyn.hidden),
             "prior_std": dyn.prior_std, "likelihood_std": dyn.likelihood_std}
     counters = {"iteration": 0, "frames": 0}
-    replay = TensorDictReplayBuffer(storage=LazyTensorStorage(dyn.replay_size), batch_size=dyn.batch_size)
-    holdout = TensorDictReplayBuffer(storage=LazyTensorStorage(dyn.holdout_size))
+    replay = TensorDictReplayBuffer(storage=LazyTensorStorage(dyn.replay_size, device=device),
+                                    batch_size=dyn.batch_size)
+    holdout = TensorDictReplayBuffer(storage=LazyTensorStorage(dyn.holdout_size, device=device))
     first_batch = seen = None
     initial_coverage: dict[str, float] = {}
     # FileNotFoundError says what is missing; ValueError if the checkpoint's format or meta differ
@@ -150,7 +155,7 @@ def train(cfg: DictConfig) -> dict:
         for buffer, stored in ((replay, state["replay"]), (holdout, state["holdout"])):
             if stored is not None and stored.shape[0]:
                 buffer.extend(stored)
-        seen = state["visited"]
+        seen = None if state["visited"] is None else state["visited"].to(device)
         counters.update(state["counters"])
         initial_coverage = state["initial_coverage"]
         torch.set_rng_state(state["rng"])

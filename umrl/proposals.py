@@ -76,9 +76,9 @@ class TaskProposal:
         return skills
 
 
-def _skill_env(env_name: str, discriminator, num_skills: int, batch: int, seed: int, horizon: int
-               ) -> tuple[TransformedEnv, SkillTransform]:
-    env = make_env(env_name, batch, seed=seed, horizon=horizon)
+def _skill_env(env_name: str, discriminator, num_skills: int, batch: int, seed: int, horizon: int,
+               device: torch.device) -> tuple[TransformedEnv, SkillTransform]:
+    env = make_env(env_name, batch, seed=seed, horizon=horizon, device=device)
     obs_dim = env.observation_spec["observation"].shape[-1]
     in_features = next(p for p in discriminator.parameters()).shape[-1]
     if in_features != obs_dim:
@@ -103,6 +103,7 @@ def make_proposal(
     num_skills: int | None = None,
     diayn_checkpoint: str | os.PathLike | None = None,
     discriminator_hidden: tuple[int, ...] = (300, 300),
+    device: torch.device | str = "cpu",
 ) -> TaskProposal:
     """Build a :class:`TaskProposal`.
 
@@ -120,6 +121,8 @@ def make_proposal(
             :attr:`~umrl.envs.EnvSpec.num_skills`); diayn reads it from the checkpoint.
         diayn_checkpoint: DIAYN run directory or ``step_*.pt`` file (proposal ``diayn`` only).
         discriminator_hidden: widths of the random discriminator.
+        device: device of the env's tensors and of the discriminator (MuJoCo physics stays on CPU threads, its
+            outputs move once per step); tasks are drawn on the CPU (the same tasks on every device).
     """
     if name not in PROPOSALS:
         raise ValueError(f"unknown proposal {name!r}; valid choices: {list(PROPOSALS)}.")
@@ -130,7 +133,7 @@ def make_proposal(
     if name == "oracle":
         num_tasks = num_tasks or spec.num_skills
         tasks = spec.task_family.sample(num_tasks, torch.Generator().manual_seed(seed))
-        env = make_task_env(env_name, tasks.repeat_interleave(n, 0), seed=seed, horizon=horizon)
+        env = make_task_env(env_name, tasks.repeat_interleave(n, 0), seed=seed, horizon=horizon, device=device)
         return TaskProposal(name, env, num_tasks, n, task_reward=env.transform[-1])
     if name == "diayn":
         if diayn_checkpoint is None:
@@ -142,8 +145,9 @@ def make_proposal(
         num_skills = num_skills or spec.num_skills
         discriminator = make_discriminator(spec.obs_dim, num_skills, hidden=discriminator_hidden, seed=seed)
         discriminator = discriminator.eval().requires_grad_(False)
+    discriminator = discriminator.to(device)
     num_tasks = num_tasks or num_skills
     if num_tasks > num_skills:
         raise ValueError(f"num_tasks={num_tasks} exceeds the {num_skills} skills: one skill per task.")
-    env, skills = _skill_env(env_name, discriminator, num_skills, num_tasks * n, seed, horizon)
+    env, skills = _skill_env(env_name, discriminator, num_skills, num_tasks * n, seed, horizon, torch.device(device))
     return TaskProposal(name, env, num_tasks, n, num_skills=num_skills, skills=skills)

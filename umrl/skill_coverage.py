@@ -50,13 +50,13 @@ def final_states(rollout: TensorDictBase, env_name: str) -> TensorDict:
     if not done.any(-1).all():
         raise ValueError("every rollout must contain a done step: roll out for at least the env's horizon.")
     last = done.float().argmax(-1)  # first done
-    index = torch.arange(done.shape[0])
+    index = torch.arange(done.shape[0], device=done.device)
     spec = get_env_spec(env_name)
     values = rollout.get(("next", spec.coverage_key))  # [N, T, d]
     if spec.coverage_reduction == "last":
         end_point = values[index, last]
     else:
-        alive = (torch.arange(done.shape[1])[None] <= last[:, None]).unsqueeze(-1)
+        alive = (torch.arange(done.shape[1], device=done.device)[None] <= last[:, None]).unsqueeze(-1)
         end_point = (values * alive).sum(1) / alive.sum(1)
     return TensorDict(
         {"end_point": end_point, "final_observation": rollout.get(("next", "observation"))[index, last]},
@@ -91,7 +91,7 @@ def evaluate_skills(
             f"the env has batch {tuple(env.batch_size)}; expected ({num_skills * episodes_per_skill},) = "
             "num_skills * episodes_per_skill copies."
         )
-    skills = torch.arange(num_skills).repeat(episodes_per_skill)
+    skills = torch.arange(num_skills, device=env.device).repeat(episodes_per_skill)
     transform = skill_transforms[0]
     transform.pin(skills)
     try:
@@ -184,7 +184,7 @@ def state_coverage(batch: TensorDictBase, env_name: str, cell_size: float | None
     values = visited_states(batch, env_name)
     if values.shape[-1] == 1:
         v = values.reshape(-1)
-        low, high = torch.quantile(v, torch.tensor([0.05, 0.95]))
+        low, high = torch.quantile(v, torch.tensor([0.05, 0.95], device=v.device))
         return {"velocity_range": float(v.max() - v.min()), "velocity_range_p5_p95": float(high - low)}
     cell = _cell(env_name, cell_size)
     cells = torch.unique(torch.floor(values / cell).long(), dim=0).shape[0]
@@ -225,14 +225,16 @@ def plot_coverage(
 
     2-D: a scatter of the points (coloured by ``skills`` ``[N]`` with per-skill centroids if given), the held-out
     ``eval_tasks`` ``[M, 2]`` as red crosses and ``baseline`` points ``[K, 2]`` in grey. 1-D (velocities):
-    histograms of the points (blue), of the evaluation velocities (green) and of the baseline (grey).
+    histograms of the points (blue), of the evaluation velocities (green) and of the baseline (grey). The tensors may
+    live on any device: they are copied to the CPU for plotting.
     """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    end = points.float()
+    end = points.float().cpu()
+    eval_tasks, skills, baseline = (None if t is None else t.cpu() for t in (eval_tasks, skills, baseline))
     fig, ax = plt.subplots(figsize=(6, 5))
     if end.shape[-1] == 2:
         if baseline is not None:

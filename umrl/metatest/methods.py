@@ -31,6 +31,7 @@ from umrl.metatest.protocol import (
 from umrl.metatest.results import to_rows, write_rows
 from umrl.modules.policy import make_gaussian_policy
 from umrl.runtime import seed_everything
+from umrl.validation import DEVICES, check_choice, resolve_device
 
 #: Pre-training recipes and the MAML recipe's task proposals.
 RECIPES = ("diayn", "maml", "vime")
@@ -110,12 +111,20 @@ def env_dims(env_name: str) -> tuple[int, int]:
 
 
 def load_initialisation(method: str, env_name: str, checkpoint: str | os.PathLike | None, *,
-                        seed: int) -> Initialisation:
+                        seed: int, device: torch.device | str = "cpu") -> Initialisation:
     """The policy ``method`` starts meta-test from (see :data:`METHODS`); ``checkpoint`` is its pre-training output.
 
-    scratch draws a fresh 2x300 Gaussian policy from ``seed``; the MAML inits return the SGD step size they were
-    meta-trained with as ``lr``.
+    scratch draws a fresh 2x300 Gaussian policy from ``seed`` (on the CPU: the same weights on every device); the
+    MAML inits return the SGD step size they were meta-trained with as ``lr``. The policy is moved to ``device``
+    (checkpoints load on the CPU first, so one written on a GPU loads anywhere).
     """
+    init = _load_initialisation(method, env_name, checkpoint, seed=seed)
+    init.policy = init.policy.to(device)
+    return init
+
+
+def _load_initialisation(method: str, env_name: str, checkpoint: str | os.PathLike | None, *,
+                         seed: int) -> Initialisation:
     spec = get_method(method)
     pretraining = spec.pretraining
     if pretraining is None:
@@ -139,24 +148,26 @@ def load_initialisation(method: str, env_name: str, checkpoint: str | os.PathLik
 
 
 def meta_test(init: Initialisation, env_name: str, tasks: torch.Tensor, *, lr: float, seed: int,
-              config: AdaptationConfig, skill_trajectories: int) -> tuple[torch.Tensor, dict]:
-    """Adapt ``init`` on ``tasks`` ``[T, task_dim]``; returns (returns ``[K + 1, T]``, info).
+              config: AdaptationConfig, skill_trajectories: int,
+              device: torch.device | str = "cpu") -> tuple[torch.Tensor, dict]:
+    """Adapt ``init`` on ``tasks`` ``[T, task_dim]``; returns (returns ``[K + 1, T]`` on the CPU, info).
 
-    DIAYN-init first picks each task's best skill from ``skill_trajectories`` rollouts per (task, skill);
-    ``info["skills"]`` lists them.
+    The envs, the per-task parameters and the batches live on ``device`` (``init.policy`` must be there too, as
+    :func:`load_initialisation` leaves it). DIAYN-init first picks each task's best skill from
+    ``skill_trajectories`` rollouts per (task, skill); ``info["skills"]`` lists them.
     """
     seed_everything(seed)
     info: dict = {}
     skills = None
     if init.num_skills is not None:
         skills, _ = select_skills(init.policy, env_name, tasks, init.num_skills, num_trajectories=skill_trajectories,
-                                  seed=seed, horizon=config.horizon)
+                                  seed=seed, horizon=config.horizon, device=device)
         info["skills"] = skills.tolist()
     env = make_eval_env(env_name, tasks, config.num_trajectories, seed=seed, horizon=config.horizon, skills=skills,
-                        num_skills=init.num_skills)
+                        num_skills=init.num_skills, device=device)
     returns = TaskAdapter(init.policy, env, tasks.shape[0], optimizer=init.optimizer, lr=lr, config=config).run()
     env.close()
-    return returns, info
+    return returns.cpu(), info
 
 
 def _reject(key: str, value, accepted: str) -> ValueError:
@@ -210,6 +221,8 @@ class CellSpec:
         sweep: the Adam learning-rate sweep (:class:`SweepConfig`).
         skill_trajectories: DIAYN-init rollouts per (task, skill) when choosing each task's skill.
         threads: torch threads of the job.
+        device: ``cpu`` | ``cuda`` | ``auto`` (:func:`umrl.validation.resolve_device`, at the start of
+            :func:`run_cell`: ``cuda`` on a machine without a GPU fails there, naming the choices).
         extra: constant columns added to every row (e.g. the ablation's ``iteration``).
     """
 
@@ -225,6 +238,7 @@ class CellSpec:
     sweep: SweepConfig = field(default_factory=SweepConfig)
     skill_trajectories: int = 4
     threads: int = 1
+    device: str = "cpu"
     extra: Mapping = field(default_factory=dict)
 
     def __post_init__(self):
@@ -237,6 +251,7 @@ class CellSpec:
         for key in ("num_tasks", "skill_trajectories", "threads"):
             if not _is_int(getattr(self, key)) or getattr(self, key) < 1:
                 raise _reject(key, getattr(self, key), "an integer >= 1")
+        check_choice("device", self.device, DEVICES)
         if not _is_positive(self.adam_lr):
             raise _reject("adam_lr", self.adam_lr, "a positive float")
         if self.sgd_lr is not None and not _is_positive(self.sgd_lr):
@@ -286,10 +301,11 @@ def run_cell(spec: CellSpec) -> str:
     output = Path(spec.output)
     if output.exists():
         return str(output)
+    device = torch.device(resolve_device("device", spec.device))
     torch.set_num_threads(spec.threads)
     start = time.perf_counter()
     config = spec.protocol
-    init = load_initialisation(spec.method, spec.env, spec.checkpoint, seed=spec.seed)
+    init = load_initialisation(spec.method, spec.env, spec.checkpoint, seed=spec.seed, device=device)
     info: dict = {"method": spec.method, "env": spec.env, "seed": spec.seed, "checkpoint": spec.checkpoint}
     if init.optimizer == "sgd":
         lr = float(spec.sgd_lr) if spec.sgd_lr is not None else init.lr
@@ -299,15 +315,15 @@ def run_cell(spec: CellSpec) -> str:
             sweep_config = replace(config, num_steps=spec.sweep.num_steps)
 
             def trial(trial_lr: float, tasks: torch.Tensor) -> torch.Tensor:
-                fresh = load_initialisation(spec.method, spec.env, spec.checkpoint, seed=spec.seed)
+                fresh = load_initialisation(spec.method, spec.env, spec.checkpoint, seed=spec.seed, device=device)
                 return meta_test(fresh, spec.env, tasks, lr=trial_lr, seed=spec.seed, config=sweep_config,
-                                 skill_trajectories=spec.skill_trajectories)[0]
+                                 skill_trajectories=spec.skill_trajectories, device=device)[0]
 
             lr, info["sweep_scores"] = sweep_learning_rate(
                 trial, list(spec.sweep.lrs), sweep_tasks(spec.env, spec.sweep.num_tasks, spec.seed))
     tasks = get_task_family(spec.env).eval_tasks(spec.num_tasks)
     returns, extra_info = meta_test(init, spec.env, tasks, lr=lr, seed=spec.seed, config=config,
-                                    skill_trajectories=spec.skill_trajectories)
+                                    skill_trajectories=spec.skill_trajectories, device=device)
     info.update(extra_info, lr=lr, optimizer=init.optimizer, lr_schedule=spec.lr_schedule,
                 protocol=asdict(config), seconds=time.perf_counter() - start, mean_return=returns.mean(-1).tolist())
     rows = to_rows(returns, method=spec.method, env=spec.env, seed=spec.seed, lr_schedule=spec.lr_schedule,

@@ -88,13 +88,16 @@ class AdaptationConfig:
 
 
 def make_eval_env(env_name: str, tasks: torch.Tensor, num_trajectories: int, *, seed: int, horizon: int,
-                  skills: torch.Tensor | None = None, num_skills: int | None = None) -> TransformedEnv:
-    """Task env with batch ``T × N`` (task-major: copy ``t * N + n`` solves ``tasks[t]``).
+                  skills: torch.Tensor | None = None, num_skills: int | None = None,
+                  device: torch.device | str = "cpu") -> TransformedEnv:
+    """Task env with batch ``T × N`` (task-major: copy ``t * N + n`` solves ``tasks[t]``) whose tensors live on
+    ``device`` (MuJoCo physics stays on CPU threads; its outputs move once per step).
 
     With ``skills`` (LongTensor ``[T]``) a :class:`SkillTransform` of ``num_skills`` is appended and copy
     ``t * N + n`` runs skill ``skills[t]``.
     """
-    env = make_task_env(env_name, tasks.repeat_interleave(num_trajectories, 0), seed=seed, horizon=horizon)
+    env = make_task_env(env_name, tasks.repeat_interleave(num_trajectories, 0), seed=seed, horizon=horizon,
+                        device=device)
     if skills is not None:
         if num_skills is None:
             raise ValueError("num_skills is required when skills are pinned.")
@@ -119,6 +122,8 @@ class TaskAdapter:
         lr: learning rate (> 0); for SGD the base ``α`` of ``config.sgd_schedule``.
         config: the protocol (:class:`AdaptationConfig`).
 
+    The per-task parameters, the optimizer state and every batch live on ``env.device``.
+
     Attributes:
         params: per-task parameters, a TensorDict with batch size ``[T]`` whose leaves the optimizer updates.
         scheduler: a ``torch.optim.lr_scheduler.LambdaLR`` applying ``config.sgd_schedule`` (SGD only, else None).
@@ -136,7 +141,7 @@ class TaskAdapter:
             )
         self.policy, self.env, self.num_tasks, self.config = policy, env, num_tasks, config
         self.functional = FunctionalPolicy(policy)  # loop or vmap over tasks, by per-task batch size
-        base = TensorDict.from_module(policy).detach()
+        base = TensorDict.from_module(policy).detach().to(env.device)
         self.params = base.expand(num_tasks).clone()
         leaves = [p.requires_grad_() for p in self.params.values(True, True) if p.is_floating_point()]
         cls = torch.optim.SGD if optimizer == "sgd" else torch.optim.Adam
@@ -178,10 +183,12 @@ class TaskAdapter:
 
 
 def select_skills(policy: TensorDictModuleBase, env_name: str, tasks: torch.Tensor, num_skills: int, *,
-                  num_trajectories: int, seed: int, horizon: int = 100) -> tuple[torch.Tensor, torch.Tensor]:
+                  num_trajectories: int, seed: int, horizon: int = 100,
+                  device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
     """DIAYN-init's skill choice: roll out every skill on every task, keep the best.
 
-    The env batch is ``T × K × n`` (``n = num_trajectories``); one policy call per step.
+    The env batch is ``T × K × n`` (``n = num_trajectories``); one policy call per step. The env runs on ``device``,
+    where ``policy`` must live; both outputs are on ``device``.
 
     Returns:
         ``(best [T] long, returns [T, K])``: the skill with the highest mean task return per task and all means.
@@ -189,7 +196,7 @@ def select_skills(policy: TensorDictModuleBase, env_name: str, tasks: torch.Tens
     num_tasks = tasks.shape[0]
     # one (task, skill) pair per "task" of the eval env: pair t * K + k solves tasks[t] with skill k
     env = make_eval_env(env_name, tasks.repeat_interleave(num_skills, 0), num_trajectories, seed=seed, horizon=horizon,
-                        skills=torch.arange(num_skills).repeat(num_tasks), num_skills=num_skills)
+                        skills=torch.arange(num_skills).repeat(num_tasks), num_skills=num_skills, device=device)
     batch = collect(env, policy, num_tasks=num_tasks * num_skills, horizon=horizon)
     env.close()
     returns = episode_returns(batch).mean(-1).reshape(num_tasks, num_skills)
@@ -212,7 +219,7 @@ def sweep_learning_rate(run: Callable[[float, torch.Tensor], torch.Tensor], lrs:
         raise ValueError("the learning-rate sweep needs at least one value.")
     scores = {}
     for lr in lrs:
-        returns = run(float(lr), tasks).numpy()
+        returns = run(float(lr), tasks).cpu().numpy()
         score = float(auc(returns.T).mean())
         scores[float(lr)] = score if math.isfinite(score) else -math.inf
     return max(scores, key=scores.get), scores
