@@ -1,12 +1,15 @@
 """Reward maps of 2-D skill discriminators: shapes, territories = argmax D, the statistics on a known geometry."""
 import math
+import runpy
+import sys
+from pathlib import Path
 
 import pytest
 import torch
 from tensordict.nn import TensorDictModule
 
 from umrl.modules.discriminator import make_discriminator
-from umrl.reward_map import plot_rays, plot_territories, reward_map, reward_map_stats
+from umrl.reward_map import reward_map, reward_map_stats
 
 GOALS = torch.tensor([[0.3, 0.1], [-0.4, 0.2], [0.1, 0.45], [0.4, -0.3]])
 
@@ -52,12 +55,6 @@ def test_stats_on_a_known_geometry():
     assert flat["disc_range"] == 0 and flat["edge_fraction"] == 0  # D uniform: r = 0, the first point is "best"
 
 
-def test_figures_are_written(tmp_path):
-    rmap = reward_map(compass_discriminator(), GOALS, radius=4.0, resolution=21, num_angles=8, num_radii=5)
-    for path in (plot_territories(rmap, tmp_path / "t.png", title="t"), plot_rays(rmap, tmp_path / "r.png")):
-        assert path.stat().st_size > 1000
-
-
 def test_bad_inputs():
     d = compass_discriminator()
     with pytest.raises(ValueError, match="radius must be positive"):
@@ -66,3 +63,25 @@ def test_bad_inputs():
         reward_map(d, GOALS[:, :1], radius=1.0)
     with pytest.raises(ValueError, match="resolution"):
         reward_map(d, GOALS, radius=1.0, resolution=1)
+
+
+def test_cli_maps_random_and_diayn_discriminators_and_draws_them(tiny_diayn_checkpoint, tmp_path, monkeypatch, capsys):
+    directory, discriminator = tiny_diayn_checkpoint
+    out = tmp_path / "maps"
+    monkeypatch.setattr(sys, "argv", ["reward_map.py", "--random-seeds", "1", "--hidden", "16", "--num-skills",
+                                      "4", "--resolution", "21", "--diayn-checkpoint", str(directory),
+                                      "--out", str(out)])
+    runpy.run_path(str(Path(__file__).parents[1] / "benchmarks" / "reward_map.py"), run_name="__main__")
+    printed = capsys.readouterr().out
+    for name in ("random_xavier_seed1", "diayn_diayn"):
+        assert name in printed
+        for figure in (f"territories_{name}.png", f"rays_{name}.png"):
+            assert (out / figure).stat().st_size > 1000
+    # the checkpoint's row is the loaded discriminator's
+    from umrl.envs.tasks import get_task_family
+
+    expected = reward_map_stats(reward_map(discriminator, get_task_family("point_nav").eval_tasks(), radius=10.0,
+                                           resolution=21))
+    row = next(line for line in printed.splitlines() if line.startswith("diayn_diayn")).split()[1:]
+    assert float(row[5]) == pytest.approx(expected["edge_fraction"], abs=1e-3)
+    assert int(float(row[6])) == expected["skills_near_origin"]
