@@ -191,7 +191,7 @@ def train(cfg: DictConfig) -> dict:
             reward = batch["next", "reward"]
             reward[batch["mask"]] = reward[batch["mask"]][torch.randperm(int(batch["mask"].sum()))]
         valid = batch[batch["mask"]].select(*TRANSITION_KEYS)
-        held = torch.rand(valid.shape[0]) < dyn.holdout_fraction
+        held = (torch.rand(valid.shape[0]) < dyn.holdout_fraction).to(valid.device)  # CPU draw: same split anywhere
         for buffer, part in ((replay, valid[~held]), (holdout, valid[held])):
             if part.shape[0]:
                 buffer.extend(part)
