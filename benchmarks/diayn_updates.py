@@ -54,9 +54,9 @@ def sync(device: torch.device) -> float:
 
 
 def matmul_rate(device: torch.device, m: int, k: int, n: int, repeats: int = 7) -> float:
-    """Median FLOP/s of a float32 [m, k] @ [k, n] ``torch.mm`` on ``device`` (``inner`` calls per timing)."""
+    """Median FLOP/s of a float32 [m, k] @ [k, n] ``torch.mm`` on ``device`` (repeated to ~2 GFLOP per timing)."""
     a, b = torch.randn(m, k, device=device), torch.randn(k, n, device=device)
-    inner = max(1, int(2e9 // (2 * m * k * n)))  # ~2 GFLOP per timing: long enough for the clock
+    inner = max(1, int(2e9 // (2 * m * k * n)))
     torch.mm(a, b)
     times = []
     for _ in range(repeats):
@@ -67,8 +67,8 @@ def matmul_rate(device: torch.device, m: int, k: int, n: int, repeats: int = 7) 
     return 2 * m * k * n / statistics.median(times)
 
 
-def random_buffer(env_name: str, obs_dim: int, act_dim: int, size: int, device: torch.device):
-    """A replay buffer on ``device`` holding ``size`` random transitions with the keys DIAYNLoss reads."""
+def random_transitions(env_name: str, obs_dim: int, act_dim: int, size: int) -> TensorDict:
+    """``size`` random transitions (batch ``[size]``, on CPU) with the keys DIAYNLoss reads."""
     g = torch.Generator().manual_seed(0)
     skill = torch.eye(SKILLS[env_name])[torch.randint(SKILLS[env_name], (size,), generator=g)]
     data = TensorDict({
@@ -110,7 +110,7 @@ class Variant:
         self.update = DIAYNUpdate(self.loss, optimizers, tau=0.01, compile="compile" in name, cudagraphs=cudagraphs)
         self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(args.buffer_size, device=device),
                                              batch_size=args.batch_size)
-        self.buffer.extend(random_buffer(env_name, obs_dim, act_dim, args.buffer_size, device))
+        self.buffer.extend(random_transitions(env_name, obs_dim, act_dim, args.buffer_size))
 
     def run(self, n: int) -> float:
         """Seconds for ``n`` sample + update steps (device work included)."""
