@@ -38,6 +38,8 @@ from torchrl.envs import RewardSum
 from torchrl.objectives import SoftUpdate
 
 from umrl.checkpoints import DIAYN_FORMAT, save_diayn_checkpoint
+from umrl.configs import validate
+from umrl.configs.diayn import DIAYNConfig
 from umrl.envs import get_env_spec, make_env
 from umrl.modules.discriminator import make_discriminator
 from umrl.modules.sac import make_skill_actor, make_skill_qvalue
@@ -45,10 +47,15 @@ from umrl.objectives.diayn import DIAYNLoss
 from umrl.runtime import (
     Checkpointer,
     check_finite,
+    env_state,
+    isolated_rng,
+    load_env_state,
     log_image,
     log_metrics,
     make_logger,
+    rng_state,
     seed_everything,
+    set_rng_state,
 )
 from umrl.skill_coverage import coverage_metrics, evaluate_skills, plot_coverage
 from umrl.transforms.discriminator_reward import DiscriminatorReward
@@ -58,28 +65,7 @@ from umrl.validation import resolve_device
 
 def resolve_num_skills(cfg: DictConfig) -> int:
     """``num_skills``, or the env's default (:attr:`umrl.envs.EnvSpec.num_skills`) when it is null."""
-    num_skills = cfg.num_skills if cfg.num_skills is not None else get_env_spec(cfg.env.name).num_skills
-    if int(num_skills) != num_skills or num_skills < 2:
-        raise ValueError(f"num_skills must be an integer >= 2 (DIAYN needs skills to tell apart), got {num_skills}.")
-    return int(num_skills)
-
-
-def check_config(cfg: DictConfig) -> None:
-    positive = {
-        "env.num_envs": cfg.env.num_envs, "collector.total_frames": cfg.collector.total_frames,
-        "collector.frames_per_batch": cfg.collector.frames_per_batch, "replay_buffer.batch_size":
-        cfg.replay_buffer.batch_size, "optim.updates_per_frame": cfg.optim.updates_per_frame,
-        "eval.every": cfg.eval.every, "eval.episodes_per_skill": cfg.eval.episodes_per_skill,
-        "checkpoint.every": cfg.checkpoint.every,
-    }
-    bad = {name: value for name, value in positive.items() if not value > 0}
-    if bad:
-        raise ValueError(f"these config values must be positive: {bad}.")
-    if cfg.collector.frames_per_batch % cfg.env.num_envs:
-        raise ValueError(
-            f"collector.frames_per_batch ({cfg.collector.frames_per_batch}) must be a multiple of env.num_envs "
-            f"({cfg.env.num_envs})."
-        )
+    return cfg.num_skills if cfg.num_skills is not None else get_env_spec(cfg.env.name).num_skills
 
 
 def make_skill_env(cfg: DictConfig, num_envs: int, num_skills: int, seed: int, discriminator=None):
@@ -93,9 +79,11 @@ def make_skill_env(cfg: DictConfig, num_envs: int, num_skills: int, seed: int, d
 
 
 def evaluate(cfg, env, actor, discriminator, num_skills, step, figure_path, logger, baseline) -> dict:
-    """Fresh rollouts of every skill: coverage metrics, final-state accuracy, the figure at ``figure_path``."""
-    result = evaluate_skills(env, actor, env_name=cfg.env.name, num_skills=num_skills,
-                             episodes_per_skill=cfg.eval.episodes_per_skill, horizon=cfg.env.horizon)
+    """Fresh rollouts of every skill: coverage metrics, final-state accuracy, the figure at ``figure_path``; the
+    training's random generators do not move (a resumed run draws what an uninterrupted one draws)."""
+    with isolated_rng():
+        result = evaluate_skills(env, actor, env_name=cfg.env.name, num_skills=num_skills,
+                                 episodes_per_skill=cfg.eval.episodes_per_skill, horizon=cfg.env.horizon)
     metrics = {f"eval/{k}": v for k, v in coverage_metrics(result, num_skills, discriminator).items()}
     spec = get_env_spec(cfg.env.name)
     eval_tasks = spec.task_family.eval_tasks(spec.num_eval_tasks)
@@ -107,8 +95,16 @@ def evaluate(cfg, env, actor, discriminator, num_skills, step, figure_path, logg
 
 
 def train(cfg: DictConfig) -> dict:
-    """Run DIAYN as configured; return the last logged metrics (also the final evaluation)."""
-    check_config(cfg)
+    """Run DIAYN as configured (checked against :class:`~umrl.configs.diayn.DIAYNConfig` first); return the last
+    logged metrics (also the final evaluation).
+
+    ``resume=true`` restores networks, optimisers, counters, the replay buffer (its TorchRL ``state_dict``), every
+    RNG and the envs' reset noise, and finishes bit-identical to an uninterrupted run: TorchRL cannot serialise
+    in-flight episodes, so the collector restarts its episodes after every checkpoint, in an uninterrupted run
+    exactly as in a resumed one (with the default batch of one episode per env copy, a checkpoint falls on an
+    episode boundary and nothing is cut). A config that differs from the checkpoint's beyond
+    ``umrl.configs.RESUME_ALLOW`` is refused."""
+    cfg = validate(cfg, DIAYNConfig)
     num_skills = resolve_num_skills(cfg)
     torch.set_num_threads(cfg.num_threads)
     seed_everything(cfg.seed)
@@ -124,8 +120,8 @@ def train(cfg: DictConfig) -> dict:
     meta = {"env": cfg.env.name, "obs_dim": obs_dim, "act_dim": act_dim, "num_skills": num_skills,
             "hidden": hidden, "discriminator_hidden": disc_hidden,
             "discriminator_observation_key": ["next", "observation"]}
-    # FileNotFoundError says what is missing; ValueError if the checkpoint's format or meta differ
-    state = DIAYN_FORMAT.load_for_resume(checkpointer, meta) if cfg.resume else None
+    # FileNotFoundError says what is missing; ConfigError lists changed keys; ValueError if format or meta differ
+    state = DIAYN_FORMAT.load_for_resume(checkpointer, meta, cfg) if cfg.resume else None
     # initialised on the CPU (the same weights on every device), then moved before the loss copies their parameters
     actor = make_skill_actor(obs_dim, num_skills, act_dim, hidden=hidden).to(device)
     discriminator = make_discriminator(obs_dim, num_skills, hidden=disc_hidden).to(device)
@@ -142,17 +138,19 @@ def train(cfg: DictConfig) -> dict:
     }
     if not cfg.optim.fixed_alpha:
         optimizers["alpha"] = torch.optim.Adam([sac.log_alpha], lr=cfg.optim.lr)
-    counters = {"frames": 0, "updates": 0, "next_eval": cfg.eval.every, "next_checkpoint": cfg.checkpoint.every}
+    counters = {"frames": 0, "updates": 0, "next_eval": cfg.eval.every, "next_checkpoint": cfg.checkpoint.every,
+                "update_credit": 0.0}
     if state is not None:
         loss.load_state_dict(state["loss"])
         for name, optimizer in optimizers.items():
             optimizer.load_state_dict(state["optimizers"][name])
         counters.update(state["counters"])
-        torch.set_rng_state(state["rng"])
 
     def save() -> Path:
         return save_diayn_checkpoint(checkpointer, meta=meta, actor=actor, discriminator=discriminator, loss=loss,
-                                     optimizers=optimizers, counters=counters, config=cfg)
+                                     optimizers=optimizers, counters=counters, replay=buffer.state_dict(),
+                                     rng=rng_state(), envs={"train": env_state(env), "eval": env_state(eval_env)},
+                                     config=cfg)
 
     # --- data -----------------------------------------------------------------------------------------
     env = make_skill_env(cfg, cfg.env.num_envs, num_skills, cfg.seed, discriminator)
@@ -163,7 +161,7 @@ def train(cfg: DictConfig) -> dict:
                          f"collector.total_frames={cfg.collector.total_frames}; raise collector.total_frames.")
     collector = Collector(
         env, actor, frames_per_batch=cfg.collector.frames_per_batch, total_frames=remaining,
-        init_random_frames=0 if state is not None else cfg.collector.init_random_frames,
+        init_random_frames=max(0, cfg.collector.init_random_frames - counters["frames"]),
         auto_register_policy_transforms=False,
     )
     buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(cfg.replay_buffer.size, device=device),
@@ -171,15 +169,22 @@ def train(cfg: DictConfig) -> dict:
     warmup = max(cfg.collector.init_random_frames, cfg.replay_buffer.batch_size)
 
     logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, config=cfg, log_dir=out_dir)
-    baseline = evaluate_skills(eval_env, None, env_name=cfg.env.name, num_skills=num_skills,
-                               episodes_per_skill=cfg.eval.episodes_per_skill, horizon=cfg.env.horizon)
+    with isolated_rng():
+        baseline = evaluate_skills(eval_env, None, env_name=cfg.env.name, num_skills=num_skills,
+                                   episodes_per_skill=cfg.eval.episodes_per_skill, horizon=cfg.env.horizon)
     random_metrics = {f"eval/random_{k}": v for k, v in coverage_metrics(baseline, num_skills, discriminator).items()}
     log_metrics(logger, random_metrics, counters["frames"])
+    if state is not None:  # after everything that draws while setting up: the loop starts where the saved one stood
+        buffer.load_state_dict(state["replay"])
+        load_env_state(env, state["envs"]["train"])
+        load_env_state(eval_env, state["envs"]["eval"])
+        set_rng_state(state["rng"])
+        collector.reset()  # as the saved run did right after saving
 
     # --- loop -----------------------------------------------------------------------------------------
     progress = tqdm.tqdm(total=cfg.collector.total_frames, initial=counters["frames"], disable=not cfg.progress,
                          unit="frames", desc=f"DIAYN {cfg.env.name}")
-    update_credit, metrics, start = 0.0, {}, time.perf_counter()
+    metrics, start, path = {}, time.perf_counter(), None
     collect_start = time.perf_counter()
     for data in collector:
         collect_time = time.perf_counter() - collect_start
@@ -190,8 +195,8 @@ def train(cfg: DictConfig) -> dict:
 
         update_start, logs = time.perf_counter(), []
         if len(buffer) >= warmup:
-            update_credit += data.numel() * cfg.optim.updates_per_frame
-            for _ in range(int(update_credit)):
+            counters["update_credit"] += data.numel() * cfg.optim.updates_per_frame
+            for _ in range(int(counters["update_credit"])):
                 out = loss(buffer.sample())
                 losses = {k: v for k, v in out.items() if k.startswith("loss_")}
                 check_finite(losses, f"DIAYN update {counters['updates']}")
@@ -203,7 +208,7 @@ def train(cfg: DictConfig) -> dict:
                 target_updater.step()
                 logs.append(out.detach())
                 counters["updates"] += 1
-            update_credit -= int(update_credit)
+            counters["update_credit"] -= int(counters["update_credit"])
         update_time = time.perf_counter() - update_start
 
         metrics = {"time/env_steps_per_s": data.numel() / max(collect_time, 1e-9),
@@ -225,9 +230,11 @@ def train(cfg: DictConfig) -> dict:
         progress.set_postfix({k.split("/")[-1]: f"{v:.3g}" for k, v in metrics.items()
                               if k in ("train/discriminator_accuracy", "train/pseudo_reward",
                                        "eval/final_state_accuracy")})
-        if counters["frames"] >= counters["next_checkpoint"]:
-            save()
-            counters["next_checkpoint"] += cfg.checkpoint.every
+        due = counters["frames"] >= counters["next_checkpoint"]
+        if due or counters["frames"] >= cfg.collector.total_frames:  # every checkpoint.every frames, and the end
+            counters["next_checkpoint"] += cfg.checkpoint.every * due
+            path = save()
+            collector.reset()  # what a run resumed from this checkpoint does: both step the same episodes
         collect_start = time.perf_counter()
     collector.shutdown()
     progress.close()
@@ -235,7 +242,6 @@ def train(cfg: DictConfig) -> dict:
     final = evaluate(cfg, eval_env, actor, discriminator, num_skills, counters["frames"],
                      out_dir / "figures" / "skill_coverage.png", logger, baseline)
     log_metrics(logger, final, counters["frames"])
-    path = save()
     env.close()
     eval_env.close()
     return {**metrics, **final, **random_metrics, "checkpoint": str(path)}

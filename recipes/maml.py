@@ -31,16 +31,26 @@ import tqdm
 from omegaconf import DictConfig
 
 from umrl.checkpoints import MAML_FORMAT, save_maml_checkpoint
+from umrl.configs import validate
+from umrl.configs.maml import MAMLConfig
 from umrl.modules.policy import make_gaussian_policy
 from umrl.objectives.maml import MAMLLoss
 from umrl.objectives.policy_gradient import compute_advantages, episode_returns
 from umrl.optim.trpo import TRPOStep
 from umrl.proposals import make_proposal
 from umrl.rollout import collect
-from umrl.runtime import Checkpointer, check_finite, log_metrics, make_logger, seed_everything
+from umrl.runtime import (
+    Checkpointer,
+    check_finite,
+    env_state,
+    load_env_state,
+    log_metrics,
+    make_logger,
+    rng_state,
+    seed_everything,
+    set_rng_state,
+)
 from umrl.validation import resolve_device
-
-HVP_MODES = ("gauss_newton", "exact")
 
 
 def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPOStep,
@@ -119,13 +129,15 @@ def build(cfg: DictConfig):
 
 
 def train(cfg: DictConfig) -> dict:
-    """Meta-train as configured; return the last iteration's metrics and the final checkpoint path."""
+    """Meta-train as configured (checked against :class:`~umrl.configs.maml.MAMLConfig` first); return the last
+    iteration's metrics and the final checkpoint path. ``resume=true`` restores the policy, the counters, every RNG
+    (torch, numpy, python, the task generator) and the env's reset noise: the run finishes bit-identical to an
+    uninterrupted one; a config that differs from the checkpoint's beyond ``umrl.configs.RESUME_ALLOW`` is refused."""
+    cfg = validate(cfg, MAMLConfig)
     torch.set_num_threads(cfg.num_threads)
     generator = seed_everything(cfg.seed)
     out_dir = Path(cfg.output_dir)
     checkpointer = Checkpointer(out_dir / "checkpoints", keep_all=cfg.checkpoint.keep_all)
-    if cfg.trpo.hvp not in HVP_MODES:
-        raise ValueError(f"trpo.hvp must be one of {list(HVP_MODES)}, got {cfg.trpo.hvp!r}.")
     proposal, policy, loss, trpo = build(cfg)
     env = proposal.env
     obs_dim, act_dim = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
@@ -137,17 +149,17 @@ def train(cfg: DictConfig) -> dict:
         "horizon": cfg.env.horizon, "num_skills": proposal.num_skills,
     }
     iteration, env_steps = 0, 0
-    # FileNotFoundError says what is missing; ValueError if the checkpoint's format or meta differ
-    state = MAML_FORMAT.load_for_resume(checkpointer, meta) if cfg.resume else None
+    # FileNotFoundError says what is missing; ConfigError lists changed keys; ValueError if format or meta differ
+    state = MAML_FORMAT.load_for_resume(checkpointer, meta, cfg) if cfg.resume else None
     if state is not None:
         policy.load_state_dict(state["policy"])
         iteration, env_steps = state["iteration"], state["env_steps"]
-        torch.set_rng_state(state["rng"])
-        generator.set_state(state["task_rng"])
+        set_rng_state(state["rng"], task=generator)
+        load_env_state(env, state["env"])
 
     def save():
         return save_maml_checkpoint(checkpointer, meta=meta, policy=policy, iteration=iteration,
-                                    env_steps=env_steps, task_rng=generator, config=cfg)
+                                    env_steps=env_steps, rng=rng_state(task=generator), env=env_state(env), config=cfg)
 
     if state is None:
         save()  # iteration 0: the initialisation before meta-training, the ablation's first point

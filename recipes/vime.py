@@ -40,6 +40,8 @@ from tensordict import TensorDictBase
 from torchrl.data import LazyTensorStorage, ReplayBuffer, TensorDictReplayBuffer
 
 from umrl.checkpoints import VIME_FORMAT, save_vime_checkpoint
+from umrl.configs import validate
+from umrl.configs.vime import VIMEConfig
 from umrl.envs import get_env_spec, make_env
 from umrl.modules.bnn import BayesianDynamics
 from umrl.modules.policy import make_gaussian_policy
@@ -48,34 +50,22 @@ from umrl.objectives.policy_gradient import compute_advantages
 from umrl.objectives.vime import VIMELoss
 from umrl.optim.trpo import TRPOStep
 from umrl.rollout import collect
-from umrl.runtime import Checkpointer, check_finite, log_metrics, make_logger, seed_everything
+from umrl.runtime import (
+    Checkpointer,
+    check_finite,
+    env_state,
+    load_env_state,
+    log_metrics,
+    make_logger,
+    rng_state,
+    seed_everything,
+    set_rng_state,
+)
 from umrl.skill_coverage import cumulative_coverage, plot_coverage, state_coverage, visited_states
 from umrl.transforms.vime_bonus import VIMEBonus
 from umrl.validation import resolve_device
 
 TRANSITION_KEYS = ("observation", "action", ("next", "observation"))
-
-
-def check_config(cfg: DictConfig) -> None:
-    positive = {
-        "iterations": cfg.iterations, "env.num_envs": cfg.env.num_envs, "env.horizon": cfg.env.horizon,
-        "dynamics.batch_size": cfg.dynamics.batch_size, "dynamics.replay_size": cfg.dynamics.replay_size,
-        "dynamics.holdout_size": cfg.dynamics.holdout_size, "dynamics.lr": cfg.dynamics.lr,
-        "checkpoint.every": cfg.checkpoint.every,
-    }
-    bad = {name: value for name, value in positive.items() if not value > 0}
-    if bad:
-        raise ValueError(f"these config values must be positive: {bad}.")
-    if not 0 < cfg.dynamics.holdout_fraction < 1:
-        raise ValueError(f"dynamics.holdout_fraction must be in (0, 1), got {cfg.dynamics.holdout_fraction}.")
-
-
-def fifo_contents(buffer: ReplayBuffer) -> TensorDictBase:
-    """The transitions held by a FIFO ``buffer`` (a round-robin ``LazyTensorStorage``), oldest first."""
-    data = buffer[:]
-    if buffer.write_count > len(buffer):  # wrapped: the oldest entry sits at the write cursor
-        data = data[(torch.arange(len(buffer), device=data.device) + buffer.write_count) % len(buffer)]
-    return data
 
 
 def trpo_update(trpo: TRPOStep, loss: MAMLLoss, batch: TensorDictBase) -> dict[str, float]:
@@ -112,8 +102,11 @@ def heldout_metrics(loss_fn: VIMELoss, holdout: TensorDictBase) -> dict[str, flo
 
 
 def train(cfg: DictConfig) -> dict:
-    """Run VIME pre-training as configured; return the last metrics and the checkpoint path."""
-    check_config(cfg)
+    """Run VIME pre-training as configured (checked against :class:`~umrl.configs.vime.VIMEConfig` first); return
+    the last metrics and the checkpoint path. ``resume=true`` (with ``checkpoint.save_replay=true``, the default)
+    finishes bit-identical to an uninterrupted run; a config that differs from the checkpoint's beyond
+    ``umrl.configs.RESUME_ALLOW`` is refused."""
+    cfg = validate(cfg, VIMEConfig)
     seed_everything(cfg.seed)
     device = torch.device(resolve_device("device", cfg.device))  # networks, replay storage, env outputs
     out_dir = Path(cfg.output_dir)
@@ -143,30 +136,31 @@ def train(cfg: DictConfig) -> dict:
     replay = TensorDictReplayBuffer(storage=LazyTensorStorage(dyn.replay_size, device=device),
                                     batch_size=dyn.batch_size)
     holdout = TensorDictReplayBuffer(storage=LazyTensorStorage(dyn.holdout_size, device=device))
-    first_batch = seen = None
+    initial_states = seen = None  # the untrained policy's visited states: the coverage figure's baseline
     initial_coverage: dict[str, float] = {}
-    # FileNotFoundError says what is missing; ValueError if the checkpoint's format or meta differ
-    state = VIME_FORMAT.load_for_resume(checkpointer, meta) if cfg.resume else None
+    # FileNotFoundError says what is missing; ConfigError lists changed keys; ValueError if format or meta differ
+    state = VIME_FORMAT.load_for_resume(checkpointer, meta, cfg) if cfg.resume else None
     if state is not None:
         policy.load_state_dict(state["policy"])
         dynamics.load_state_dict(state["dynamics"])
         optimizer.load_state_dict(state["dynamics_optimizer"])
         bonus.median_history.copy_(state["median_history"])
         for buffer, stored in ((replay, state["replay"]), (holdout, state["holdout"])):
-            if stored is not None and stored.shape[0]:
-                buffer.extend(stored)
+            if stored is not None:  # TorchRL's buffer state: contents, write cursor, sampler
+                buffer.load_state_dict(stored)
         seen = None if state["visited"] is None else state["visited"].to(device)
         counters.update(state["counters"])
-        initial_coverage = state["initial_coverage"]
-        torch.set_rng_state(state["rng"])
+        initial_coverage, initial_states = state["initial_coverage"], state["initial_states"]
+        set_rng_state(state["rng"])
+        load_env_state(env, state["env"])
 
     def save() -> Path:
         keep = cfg.checkpoint.save_replay
         return save_vime_checkpoint(
             checkpointer, meta=meta, policy=policy, dynamics=dynamics, dynamics_optimizer=optimizer,
-            median_history=bonus.median_history, replay=fifo_contents(replay) if keep else None,
-            holdout=fifo_contents(holdout) if keep else None, counters=counters, initial_coverage=initial_coverage, visited=seen,
-            config=cfg)
+            median_history=bonus.median_history, replay=replay.state_dict() if keep else None,
+            holdout=holdout.state_dict() if keep else None, counters=counters, initial_coverage=initial_coverage,
+            initial_states=initial_states, visited=seen, rng=rng_state(), env=env_state(env), config=cfg)
 
     if counters["iteration"] >= cfg.iterations:
         raise ValueError(f"nothing to do: the checkpoint is at iteration {counters['iteration']} >= "
@@ -182,7 +176,7 @@ def train(cfg: DictConfig) -> dict:
         coverage = state_coverage(batch, cfg.env.name, cfg.coverage.cell_size)
         seen, cumulative = cumulative_coverage(seen, batch, cfg.env.name, cfg.coverage.cell_size)
         if counters["iteration"] == 0:
-            initial_coverage, first_batch = coverage, batch.clone()
+            initial_coverage, initial_states = coverage, visited_states(batch, cfg.env.name).cpu()
 
         tic = time.perf_counter()
         bonus(batch)  # ("next", "reward") <- 0 + eta * info gain / median, from the model before it sees the batch
@@ -237,11 +231,11 @@ def train(cfg: DictConfig) -> dict:
         if counters["iteration"] % cfg.checkpoint.every == 0:
             save()
     progress.close()
-    if first_batch is not None:
+    if initial_states is not None:  # also on a resumed run
         spec = get_env_spec(cfg.env.name)
         plot_coverage(visited_states(batch, cfg.env.name), out_dir / "figures" / "coverage.png",
                       eval_tasks=spec.task_family.eval_tasks(spec.num_eval_tasks),
-                      baseline=visited_states(first_batch, cfg.env.name), label="VIME policy",
+                      baseline=initial_states, label="VIME policy",
                       baseline_label="initial policy", title=f"VIME {cfg.env.name}: visited states")
     path = save()
     env.close()

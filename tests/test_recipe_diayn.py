@@ -72,7 +72,7 @@ def test_cli_rejects_one_skill(tmp_path):
         check=False, capture_output=True, text=True, timeout=120,
     )
     assert proc.returncode != 0
-    assert "num_skills must be an integer >= 2" in proc.stderr
+    assert "num_skills: got 1; expected null or an integer >= 2" in proc.stderr
 
 
 def test_coverage_metrics_on_known_points():

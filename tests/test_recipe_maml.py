@@ -43,12 +43,12 @@ def test_resume_continues_from_the_latest_checkpoint(tmp_path):
     second = load_maml_checkpoint(tmp_path)
     assert second["env_steps"] == 2 * first["env_steps"]
     assert len(Checkpointer(tmp_path / "checkpoints").all()) == 3  # steps 0, 1, 2: resuming writes no second step_0
-    with pytest.raises(ValueError, match="differs from the checkpoint"):
+    with pytest.raises(ValueError, match="maml.inner_lr: checkpoint has 0.1, this run has 0.2"):
         train(_cfg(tmp_path, "iterations=3", "resume=true", "maml.inner_lr=0.2"))
 
 
 def test_clear_errors(tmp_path):
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(ValueError, match="diayn_checkpoint: .*proposal=diayn needs it"):
         train(_cfg(tmp_path, "proposal=diayn", f"diayn_checkpoint={tmp_path / 'nowhere'}"))
     with pytest.raises(FileNotFoundError, match="no checkpoint"):
         train(_cfg(tmp_path / "fresh", "resume=true"))

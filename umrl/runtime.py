@@ -1,9 +1,10 @@
 """What every recipe needs around its training loop: seeding, loggers, checkpoints.
 
 Loggers are TorchRL's (:func:`torchrl.record.loggers.get_logger`): ``wandb`` in offline mode by default (runs land in
-``./wandb/offline-run-*``; publish them later with ``wandb sync``), ``csv`` as a dependency-free alternative, ``none``
-for tests. Checkpoints are ``torch.save`` files written atomically, with the resolved config beside them (their
-formats, saving and checked loading live in :mod:`umrl.checkpoints`).
+``<output_dir>/wandb/offline-run-*``; publish them later with ``wandb sync``), ``csv`` as a dependency-free
+alternative, ``none`` for tests. Checkpoints are ``torch.save`` files written atomically, with the resolved config
+beside them (their formats, saving and checked loading live in :mod:`umrl.checkpoints`); :func:`rng_state` /
+:func:`set_rng_state` and :func:`env_state` / :func:`load_env_state` capture what a faithful resume restores.
 """
 from __future__ import annotations
 
@@ -11,13 +12,16 @@ import math
 import os
 import random
 import re
-from collections.abc import Mapping
+import warnings
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
+from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.record.loggers import Logger, get_logger
 
 LOGGER_BACKENDS = ("wandb", "csv", "none")
@@ -29,6 +33,55 @@ def seed_everything(seed: int) -> torch.Generator:
     np.random.seed(seed % 2**32)
     torch.manual_seed(seed)
     return torch.Generator().manual_seed(seed)
+
+
+def rng_state(**generators: torch.Generator) -> dict:
+    """Every random generator a run draws from: ``{"torch", "cuda" (when available), "numpy", "python",
+    "generators": {name: state}}`` for the explicit ``generators`` (restore with :func:`set_rng_state`)."""
+    state = {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate(),
+             "generators": {name: g.get_state() for name, g in generators.items()}}
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def set_rng_state(state: Mapping[str, Any], **generators: torch.Generator) -> None:
+    """Restore what :func:`rng_state` captured, including the states of the named ``generators``."""
+    missing = sorted(set(generators) - set(state["generators"]))
+    if missing:
+        raise KeyError(f"the saved RNG state has no generator {missing}; it holds {sorted(state['generators'])}.")
+    torch.set_rng_state(state["torch"])
+    np.random.set_state(state["numpy"])
+    random.setstate(state["python"])
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+    for name, generator in generators.items():
+        generator.set_state(state["generators"][name])
+
+
+@contextmanager
+def isolated_rng() -> Iterator[None]:
+    """Run a block (evaluation, figures) without moving the torch/CUDA global generators the training draws from."""
+    with torch.random.fork_rng(devices=range(torch.cuda.device_count()) if torch.cuda.is_available() else []):
+        yield
+
+
+def env_state(env: EnvBase) -> dict:
+    """The random state of ``env`` (e.g. MuJoCo reset noise) and of its transforms, for :func:`load_env_state`.
+
+    TorchRL's ``TransformedEnv.state_dict()`` leaves the base env out, so both are taken here."""
+    if isinstance(env, TransformedEnv):
+        return {"base_env": env_state(env.base_env), "transform": env.transform.state_dict()}
+    return {"env": env.state_dict()}
+
+
+def load_env_state(env: EnvBase, state: Mapping[str, Any]) -> None:
+    """Restore what :func:`env_state` took from an env built the same way."""
+    if isinstance(env, TransformedEnv):
+        load_env_state(env.base_env, state["base_env"])
+        env.transform.load_state_dict(state["transform"])
+    else:
+        env.load_state_dict(state["env"])
 
 
 def to_container(config: Any) -> dict:
@@ -43,7 +96,8 @@ def make_logger(logger_cfg: Mapping, *, exp_name: str, config: Any = None, log_d
 
     ``logger_cfg`` keys: ``backend`` (``wandb`` | ``csv`` | ``none``), optional ``project``, ``group``, ``mode``
     (wandb: ``offline`` by default, ``online`` to stream, ``disabled``; the ``WANDB_MODE`` environment variable wins).
-    CSV logs go to ``<log_dir>/csv/<exp_name>/``; wandb runs to ``$WANDB_DIR`` or ``./wandb``.
+    CSV logs go to ``<log_dir>/csv/<exp_name>/``; wandb runs to ``$WANDB_DIR/wandb`` if set, else
+    ``<log_dir>/wandb`` (recipes pass their ``output_dir``: nothing lands in the current directory).
     """
     backend = logger_cfg.get("backend", "wandb")
     if backend not in LOGGER_BACKENDS:
@@ -54,9 +108,10 @@ def make_logger(logger_cfg: Mapping, *, exp_name: str, config: Any = None, log_d
         logger = get_logger("csv", logger_name=str(Path(log_dir) / "csv"), experiment_name=exp_name)
     else:
         mode = os.environ.get("WANDB_MODE", logger_cfg.get("mode", "offline"))
+        Path(log_dir).mkdir(parents=True, exist_ok=True)
         logger = get_logger(
             "wandb",
-            logger_name=os.environ.get("WANDB_DIR", "."),
+            logger_name=os.environ.get("WANDB_DIR") or str(log_dir),
             experiment_name=exp_name,
             wandb_kwargs={
                 "project": logger_cfg.get("project", "umrl"),
@@ -98,8 +153,40 @@ def check_finite(losses: Mapping[str, torch.Tensor], where: str) -> None:
         )
 
 
+class CheckpointError(ValueError):
+    """A checkpoint file that cannot be read (truncated, empty, not a ``torch.save`` file); names the file."""
+
+
+def read_checkpoint(path: str | os.PathLike) -> Any:
+    """``torch.load`` of ``path`` on the CPU; a truncated, empty or foreign file raises :class:`CheckpointError`
+    naming it (instead of ``PytorchStreamReader failed`` / ``EOFError`` without a path)."""
+    path = Path(path)
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False)
+    except (RuntimeError, EOFError, OSError, ValueError, TypeError, AttributeError, ImportError) as e:
+        if isinstance(e, FileNotFoundError):
+            raise
+        size = path.stat().st_size if path.is_file() else 0
+        raise CheckpointError(
+            f"cannot read checkpoint {path} ({size} bytes): {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
+            " -- the file is truncated, empty or not a torch.save file (a run killed while copying it?); delete it to "
+            "resume from the previous checkpoint."
+        ) from e
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file and ``os.replace`` (a kill never leaves half a file)."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
 class Checkpointer:
     """Saves ``state`` dicts as ``<directory>/step_<N>.pt`` with the resolved config in ``<directory>/config.yaml``.
+
+    Every file is written atomically (a ``.tmp`` then ``os.replace``); ``*.tmp`` files a killed save left behind are
+    removed when the checkpointer is created.
 
     Args:
         directory: where checkpoints go (created on first save).
@@ -111,6 +198,9 @@ class Checkpointer:
     def __init__(self, directory: str | os.PathLike, keep_all: bool = False):
         self.directory = Path(directory)
         self.keep_all = keep_all
+        if self.directory.is_dir():
+            for stale in self.directory.glob("*.tmp"):
+                stale.unlink()
 
     def all(self) -> list[Path]:
         """Every checkpoint on disk, oldest step first."""
@@ -132,7 +222,7 @@ class Checkpointer:
         torch.save(dict(state), tmp)
         os.replace(tmp, path)
         if config is not None:
-            (self.directory / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(to_container(config))))
+            write_text_atomic(self.directory / "config.yaml", OmegaConf.to_yaml(OmegaConf.create(to_container(config))))
         if not self.keep_all:
             for old in self.all():
                 if old != path:
@@ -140,14 +230,32 @@ class Checkpointer:
         return path
 
     def load(self, path: str | os.PathLike | None = None) -> dict:
-        """Load ``path`` (default: the latest checkpoint)."""
+        """Load ``path`` (default: the latest checkpoint); an unreadable file raises :class:`CheckpointError`."""
         target = Path(path) if path is not None else self.latest()
         if target is None or not target.is_file():
             where = target if target is not None else self.directory
             raise FileNotFoundError(
                 f"no checkpoint at {where}: run the recipe once without resume=true, or point to an existing .pt file."
             )
-        return torch.load(target, map_location="cpu", weights_only=False)
+        return read_checkpoint(target)
+
+    def load_latest_valid(self) -> tuple[Path, Any]:
+        """``(path, state)`` of the newest readable checkpoint, for ``resume=true``: an unreadable newer file is
+        skipped with a warning naming it; ``FileNotFoundError`` if there is none, :class:`CheckpointError` if none
+        can be read."""
+        found = self.all()
+        if not found:
+            return self.load()  # raises FileNotFoundError saying where it looked
+        errors = []
+        for path in reversed(found):
+            try:
+                state = read_checkpoint(path)
+            except CheckpointError as e:
+                errors.append(str(e))
+                warnings.warn(f"skipping unreadable checkpoint {path}; trying the previous one. ({e})", stacklevel=2)
+                continue
+            return path, state
+        raise CheckpointError("no readable checkpoint in " f"{self.directory}:\n" + "\n".join(errors))
 
 
 def resolve_checkpoint(path: str | os.PathLike) -> Path:

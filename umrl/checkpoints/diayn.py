@@ -11,7 +11,10 @@ A checkpoint is a ``torch.save``'d dict:
   num_skills, hidden=discriminator_hidden)``;
 - ``"loss"``: state dict of the :class:`~umrl.objectives.diayn.DIAYNLoss` (actor, twin Q-networks and their targets,
   discriminator, alpha), ``"optimizers"``: ``{"actor", "qvalue", "discriminator"[, "alpha"]}`` Adam state dicts;
-- ``"counters"``: ``frames`` (env steps), ``updates``, ``next_eval``, ``next_checkpoint``; ``"rng"``: torch RNG state;
+- ``"counters"``: ``frames`` (env steps), ``updates``, ``next_eval``, ``next_checkpoint``, ``update_credit``;
+- ``"replay"``: the replay buffer's ``state_dict()`` (TorchRL's own buffer checkpointing: storage, sampler, writer);
+- ``"rng"``: :func:`umrl.runtime.rng_state` (torch, numpy, python); ``"envs"``: ``{"train", "eval"}``
+  :func:`umrl.runtime.env_state` (MuJoCo reset noise, transforms), all for a bit-identical ``resume=true``;
 - ``"config"``: the resolved recipe config (also written beside it as ``config.yaml``).
 
 Files are ``<output_dir>/checkpoints/step_<frames>.pt``; the final one of a run is the latest.
@@ -50,15 +53,19 @@ def save_diayn_checkpoint(
     discriminator: torch.nn.Module,
     loss: torch.nn.Module,
     optimizers: Mapping[str, torch.optim.Optimizer],
-    counters: Mapping[str, int],
+    counters: Mapping[str, int | float],
+    replay: Mapping[str, Any],
+    rng: Mapping[str, Any],
+    envs: Mapping[str, Any],
     config: Any,
 ) -> Path:
-    """Write the DIAYN state above as ``step_<counters["frames"]>.pt``, with the torch RNG state."""
+    """Write the DIAYN state above as ``step_<counters["frames"]>.pt`` (``replay``, ``rng`` and ``envs`` as taken by
+    ``ReplayBuffer.state_dict``, :func:`~umrl.runtime.rng_state` and :func:`~umrl.runtime.env_state`)."""
     return DIAYN_FORMAT.save(
         checkpointer, counters["frames"], meta, config,
         actor=actor.state_dict(), discriminator=discriminator.state_dict(), loss=loss.state_dict(),
         optimizers={k: o.state_dict() for k, o in optimizers.items()}, counters=dict(counters),
-        rng=torch.get_rng_state(),
+        replay=dict(replay), rng=dict(rng), envs=dict(envs),
     )
 
 

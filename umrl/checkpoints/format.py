@@ -12,9 +12,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import torch
-
-from umrl.runtime import Checkpointer, resolve_checkpoint, to_container
+from umrl.configs.validate import check_resume
+from umrl.runtime import Checkpointer, read_checkpoint, resolve_checkpoint, to_container
 
 __all__ = ["CheckpointFormat"]
 
@@ -53,14 +52,21 @@ class CheckpointFormat:
 
     def load(self, path: str | os.PathLike) -> dict:
         """Load and check a checkpoint: a ``step_*.pt`` file, a ``checkpoints/`` folder or a run's output_dir
-        (the latest ``step_*.pt``); ``FileNotFoundError`` says what was looked for."""
+        (the latest ``step_*.pt``); ``FileNotFoundError`` says what was looked for, ``CheckpointError`` names an
+        unreadable file."""
         file = resolve_checkpoint(path)
-        return self.check(torch.load(file, map_location="cpu", weights_only=False), file)
+        return self.check(read_checkpoint(file), file)
 
-    def load_for_resume(self, checkpointer: Checkpointer, meta: Mapping[str, Any]) -> dict:
-        """The latest checkpoint of ``checkpointer``, checked, whose ``meta`` equals ``meta`` (what the current config
-        builds): resuming with another env, network or task setting raises ``ValueError`` listing the differences."""
-        state = self.load(checkpointer.directory)
+    def load_for_resume(self, checkpointer: Checkpointer, meta: Mapping[str, Any], config: Any) -> dict:
+        """The newest readable checkpoint of ``checkpointer`` (an unreadable newer one is skipped with a warning
+        naming it), checked, for a run with ``config`` whose networks are described by ``meta``.
+
+        Raises ``ConfigError`` listing the keys where ``config`` differs from the checkpoint's saved config beyond
+        :data:`umrl.configs.RESUME_ALLOW` (seed, learning rates, env, widths, skill count...), and ``ValueError`` if
+        ``meta`` differs from the saved one."""
+        path, state = checkpointer.load_latest_valid()
+        state = self.check(state, path)
+        check_resume(state["config"], config)
         mismatched = {k: (state["meta"].get(k), v) for k, v in meta.items() if state["meta"].get(k) != v}
         if mismatched:
             raise ValueError(f"resume=true with a config that differs from the checkpoint's (saved, now): {mismatched}.")

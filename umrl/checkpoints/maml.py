@@ -7,8 +7,9 @@ A checkpoint is a ``torch.save``'d dict:
   (arguments of :func:`umrl.modules.policy.make_gaussian_policy`), ``inner_lr``, ``num_inner_steps``,
   ``first_order``, ``num_tasks``, ``trajectories_per_task``, ``horizon``, ``num_skills`` (None for oracle);
 - ``"policy"``: state dict of the meta-trained initialisation θ;
-- ``"iteration"`` (meta-iterations done), ``"env_steps"``; ``"rng"`` (torch RNG state) and ``"task_rng"`` (state of
-  the generator that draws meta-batches), for ``resume=true``;
+- ``"iteration"`` (meta-iterations done), ``"env_steps"``; ``"rng"`` (:func:`umrl.runtime.rng_state`: torch, numpy,
+  python and ``generators["task"]``, the generator that draws meta-batches) and ``"env"`` (the proposal env's
+  :func:`umrl.runtime.env_state`: MuJoCo reset noise), for a bit-identical ``resume=true``;
 - ``"config"``: the resolved recipe config (also written beside it as ``config.yaml``).
 
 Files are ``<output_dir>/checkpoints/step_<iteration>.pt``, all kept by default (meta-training ablation); the latest
@@ -44,14 +45,14 @@ def save_maml_checkpoint(
     policy: torch.nn.Module,
     iteration: int,
     env_steps: int,
-    task_rng: torch.Generator,
+    rng: Mapping[str, Any],
+    env: Mapping[str, Any],
     config: Any,
 ) -> Path:
-    """Write the MAML state above as ``step_<iteration>.pt``, with the torch RNG and ``task_rng`` states."""
+    """Write the MAML state above as ``step_<iteration>.pt``."""
     return MAML_FORMAT.save(
         checkpointer, iteration, meta, config,
-        policy=policy.state_dict(), iteration=iteration, env_steps=env_steps, rng=torch.get_rng_state(),
-        task_rng=task_rng.get_state(),
+        policy=policy.state_dict(), iteration=iteration, env_steps=env_steps, rng=dict(rng), env=dict(env),
     )
 
 

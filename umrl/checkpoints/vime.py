@@ -11,10 +11,13 @@ latest), with
   ``"action"``, ``"action_log_prob"``);
 - ``"dynamics"``: state dict of :class:`~umrl.modules.bnn.BayesianDynamics` (posterior and running statistics);
 - ``"dynamics_optimizer"``: Adam state; ``"median_history"``: the bonus normaliser's recent medians;
-- ``"replay"`` / ``"holdout"``: the dynamics model's transitions (TensorDicts, oldest first) or ``None``;
-- ``"counters"``: ``iteration``, ``frames``; ``"initial_coverage"``: coverage of the untrained policy; ``"visited"``:
-  the cells (or velocity range) visited so far;
-  ``"rng"``: torch RNG state; ``"config"``: the resolved recipe config (also beside it as ``config.yaml``).
+- ``"replay"`` / ``"holdout"``: the dynamics model's transition buffers (TorchRL ``ReplayBuffer.state_dict()``:
+  storage, write cursor, sampler) or ``None`` (``checkpoint.save_replay=false``: a resume is then not faithful);
+- ``"counters"``: ``iteration``, ``frames``; ``"initial_coverage"``: coverage of the untrained policy;
+  ``"initial_states"``: the untrained policy's visited states (the coverage figure's baseline); ``"visited"``: the
+  cells (or velocity range) visited so far;
+  ``"rng"``: :func:`umrl.runtime.rng_state` (torch, numpy, python); ``"env"``: :func:`umrl.runtime.env_state`
+  (MuJoCo reset noise); ``"config"``: the resolved recipe config (also beside it as ``config.yaml``).
 """
 from __future__ import annotations
 
@@ -24,7 +27,6 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from tensordict import TensorDictBase
 from torchrl.modules import ProbabilisticActor
 
 from umrl.checkpoints.format import CheckpointFormat
@@ -49,20 +51,23 @@ def save_vime_checkpoint(
     dynamics: BayesianDynamics,
     dynamics_optimizer: torch.optim.Optimizer,
     median_history: torch.Tensor,
-    replay: TensorDictBase | None,
-    holdout: TensorDictBase | None,
+    replay: Mapping[str, Any] | None,
+    holdout: Mapping[str, Any] | None,
     counters: Mapping[str, int],
     initial_coverage: Mapping[str, float],
+    initial_states: torch.Tensor | None,
     visited: torch.Tensor | None,
+    rng: Mapping[str, Any],
+    env: Mapping[str, Any],
     config: Any,
 ) -> Path:
-    """Write the VIME state above as ``step_<counters["iteration"]>.pt``, with the torch RNG state."""
+    """Write the VIME state above as ``step_<counters["iteration"]>.pt``."""
     return VIME_FORMAT.save(
         checkpointer, counters["iteration"], meta, config,
         policy=policy.state_dict(), dynamics=dynamics.state_dict(),
         dynamics_optimizer=dynamics_optimizer.state_dict(), median_history=median_history.clone(),
         replay=replay, holdout=holdout, counters=dict(counters), initial_coverage=dict(initial_coverage),
-        visited=visited, rng=torch.get_rng_state(),
+        initial_states=initial_states, visited=visited, rng=dict(rng), env=dict(env),
     )
 
 
