@@ -84,7 +84,7 @@ class Variant:
         self.family = get_task_family(args.env)
         n = args.trajectories
         tasks = self.family.sample(args.tasks, torch.Generator().manual_seed(args.seed))
-        self.env = make_task_env(args.env, tasks.repeat_interleave(n, 0), seed=args.seed, horizon=args.horizon,
+        self.env = make_task_env(args.env, tasks.repeat_interleave(n, 0).to(device), seed=args.seed, horizon=args.horizon,
                                  device=device)
         obs_dim, act_dim = self.env.observation_spec["observation"].shape[-1], self.env.action_spec.shape[-1]
         self.policy = make_gaussian_policy(obs_dim, act_dim, hidden=args.hidden).to(device)
