@@ -184,7 +184,7 @@ class BayesianDynamics(nn.Module):
 
     def kl_between(self, params_q: dict[str, torch.Tensor], params_p: dict[str, torch.Tensor] | None) -> torch.Tensor:
         """Closed-form ``KL(q(params_q) || q(params_p))``; ``params_p=None`` means the prior. Keys as ``named_parameters``."""
-        total = torch.zeros(())
+        total = torch.zeros((), device=next(iter(params_q.values())).device)
         for name, mu_q in params_q.items():
             if not name.endswith("_mu"):
                 continue
