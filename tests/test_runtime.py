@@ -4,6 +4,7 @@ import torch
 
 from umrl.runtime import (
     Checkpointer,
+    CheckpointError,
     check_finite,
     log_metrics,
     make_logger,
@@ -66,3 +67,40 @@ def test_wandb_defaults_to_an_offline_run(tmp_path, monkeypatch):
     assert logger.experiment.settings.mode == "offline" and logger.experiment.group == "g"
     logger.experiment.finish()
     assert list((tmp_path / "wandb").glob("offline-run-*"))
+
+
+def test_wandb_runs_land_under_the_output_dir(tmp_path, monkeypatch):
+    monkeypatch.delenv("WANDB_DIR", raising=False)
+    seen = {}
+    monkeypatch.setattr("umrl.runtime.get_logger", lambda backend, **kwargs: seen.update(kwargs))
+    make_logger({"backend": "wandb"}, exp_name="exp", log_dir=tmp_path / "run")
+    assert seen["logger_name"] == str(tmp_path / "run") and (tmp_path / "run").is_dir()  # -> <output_dir>/wandb
+    monkeypatch.setenv("WANDB_DIR", str(tmp_path / "elsewhere"))
+    make_logger({"backend": "wandb"}, exp_name="exp", log_dir=tmp_path / "run")
+    assert seen["logger_name"] == str(tmp_path / "elsewhere")
+
+
+@pytest.mark.parametrize("damage", ["truncated", "empty", "garbage"])
+def test_unreadable_checkpoint_is_named_and_resume_falls_back(tmp_path, damage):
+    checkpointer = Checkpointer(tmp_path, keep_all=True)
+    checkpointer.save({"w": torch.arange(1000.0)}, 1)
+    bad = checkpointer.save({"w": torch.arange(1000.0) + 1}, 2)
+    data = bad.read_bytes()
+    bad.write_bytes({"truncated": data[: len(data) // 2], "empty": b"", "garbage": b"not a checkpoint"}[damage])
+    with pytest.raises(CheckpointError, match=f"cannot read checkpoint {bad}"):
+        checkpointer.load(bad)
+    with pytest.warns(UserWarning, match=f"skipping unreadable checkpoint {bad}"):
+        path, state = checkpointer.load_latest_valid()
+    assert path.name == "step_1.pt" and state["w"][0] == 0
+    (tmp_path / "step_1.pt").write_bytes(b"")
+    with pytest.warns(UserWarning), pytest.raises(CheckpointError, match="no readable checkpoint"):
+        checkpointer.load_latest_valid()
+
+
+def test_stale_tmp_files_are_removed_and_config_is_written_atomically(tmp_path):
+    Checkpointer(tmp_path).save({"x": 1}, 1, config={"seed": 0})
+    (tmp_path / "step_2.pt.tmp").write_bytes(b"half a save")
+    (tmp_path / "config.yaml.tmp").write_text("half")
+    checkpointer = Checkpointer(tmp_path)
+    assert not list(tmp_path.glob("*.tmp"))
+    assert checkpointer.latest().name == "step_1.pt" and "seed: 0" in (tmp_path / "config.yaml").read_text()

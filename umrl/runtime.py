@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+import pickle
 import random
 import re
 import warnings
@@ -163,7 +164,8 @@ def read_checkpoint(path: str | os.PathLike) -> Any:
     path = Path(path)
     try:
         return torch.load(path, map_location="cpu", weights_only=False)
-    except (RuntimeError, EOFError, OSError, ValueError, TypeError, AttributeError, ImportError) as e:
+    except (RuntimeError, EOFError, OSError, ValueError, TypeError, AttributeError, ImportError,
+            pickle.UnpicklingError) as e:
         if isinstance(e, FileNotFoundError):
             raise
         size = path.stat().st_size if path.is_file() else 0

@@ -1,0 +1,114 @@
+"""Kill-and-resume: a run stopped at a checkpoint, or killed with SIGKILL mid-iteration, and resumed finishes with
+parameters bit-identical to an uninterrupted run (every recipe, point_nav and half_cheetah); resumes that would
+continue a different run are refused; an unreadable latest checkpoint falls back to the previous one."""
+import importlib
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import torch
+
+from recipes import compose
+from umrl.configs import ConfigError
+from umrl.runtime import Checkpointer, read_checkpoint
+
+pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
+
+TINY = {
+    "diayn": ["num_skills=3", "env.num_envs=4", "env.horizon=10", "collector.frames_per_batch=40",
+              "collector.init_random_frames=40", "optim.updates_per_frame=0.25", "network.hidden=[16,16]",
+              "network.discriminator_hidden=[16]", "replay_buffer.size=200", "replay_buffer.batch_size=16",
+              "eval.every=80", "eval.episodes_per_skill=1", "checkpoint.every=40"],
+    "maml": ["proposal=oracle", "meta_batch_size=2", "trajectories_per_task=3", "env.horizon=10",
+             "policy.hidden=[16]", "checkpoint.every=1", "trpo.cg_iters=3"],
+    "vime": ["env.num_envs=4", "env.horizon=10", "policy.hidden=[16]", "dynamics.hidden=[8]",
+             "dynamics.batch_size=8", "dynamics.updates_per_iteration=2", "dynamics.replay_size=30",
+             "dynamics.holdout_size=10", "bonus.num_samples=2", "dynamics.num_samples=2", "checkpoint.every=1"],
+}
+"""Tiny settings; the replay buffers are small enough to wrap (the FIFO layout must survive the resume)."""
+BUDGET = {"diayn": ("collector.total_frames", 80, 160), "maml": ("iterations", 1, 2), "vime": ("iterations", 1, 2)}
+"""(budget key, where the first run stops, where both runs end)."""
+PARAMS = {"diayn": "loss", "maml": "policy", "vime": "policy"}
+"""The checkpoint entry holding every trained parameter (DIAYN's loss: actor, Q-networks and targets, D, alpha)."""
+
+
+def config(recipe, output_dir, env_name, *overrides):
+    return compose(recipe, ["logger.backend=none", "progress=false", f"output_dir={output_dir}",
+                            f"env.name={env_name}", *TINY[recipe], *overrides])
+
+
+def max_param_diff(a: dict, b: dict) -> float:
+    assert a.keys() == b.keys()
+    return max((a[k].double() - b[k].double()).abs().max().item() for k in a)
+
+
+@pytest.mark.parametrize("env_name", ["point_nav", "half_cheetah"])
+@pytest.mark.parametrize("recipe", ["diayn", "maml", "vime"])
+def test_resume_at_a_checkpoint_is_bit_identical(tmp_path, recipe, env_name):
+    train = importlib.import_module(f"recipes.{recipe}").train
+    key, stop, end = BUDGET[recipe]
+    whole = train(config(recipe, tmp_path / "whole", env_name, f"{key}={end}"))
+    train(config(recipe, tmp_path / "split", env_name, f"{key}={stop}"))
+    resumed = train(config(recipe, tmp_path / "split", env_name, f"{key}={end}", "resume=true"))
+    a, b = read_checkpoint(whole["checkpoint"]), read_checkpoint(resumed["checkpoint"])
+    assert max_param_diff(a[PARAMS[recipe]], b[PARAMS[recipe]]) == 0.0
+    if recipe == "diayn":  # the optimisers' moments too
+        for name in a["optimizers"]:
+            for i, s in a["optimizers"][name]["state"].items():
+                assert torch.equal(s["exp_avg"], b["optimizers"][name]["state"][i]["exp_avg"])
+
+
+def test_sigkill_mid_iteration_then_resume_is_bit_identical(tmp_path):
+    """A MAML run killed with SIGKILL while meta-training (after its 2nd checkpoint), resumed in-process."""
+    overrides = ["logger.backend=none", "progress=false", "env.name=point_nav", *TINY["maml"], "iterations=6"]
+    killed = tmp_path / "killed"
+    proc = subprocess.Popen([sys.executable, "recipes/maml.py", *overrides, f"output_dir={killed}"],
+                            cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        while not (killed / "checkpoints" / "step_2.pt").exists() and proc.poll() is None:
+            assert time.monotonic() < deadline, "the recipe wrote no second checkpoint within 120 s"
+            time.sleep(0.02)
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait()
+    assert proc.returncode == -signal.SIGKILL, "the run finished before it could be killed"
+    assert Checkpointer(killed / "checkpoints").latest().name != "step_6.pt"
+
+    from recipes.maml import train
+
+    resumed = train(compose("maml", [*overrides, f"output_dir={killed}", "resume=true"]))
+    whole = train(compose("maml", [*overrides, f"output_dir={tmp_path / 'whole'}"]))
+    a, b = read_checkpoint(whole["checkpoint"]), read_checkpoint(resumed["checkpoint"])
+    assert a["iteration"] == b["iteration"] == 6
+    assert max_param_diff(a["policy"], b["policy"]) == 0.0
+
+
+def test_resume_falls_back_past_a_truncated_checkpoint(tmp_path):
+    from recipes.maml import train
+
+    cfg = lambda *o: config("maml", tmp_path, "point_nav", *o)  # noqa: E731
+    train(cfg("iterations=2"))
+    latest = Checkpointer(tmp_path / "checkpoints").latest()
+    latest.write_bytes(latest.read_bytes()[:100])
+    with pytest.warns(UserWarning, match=f"skipping unreadable checkpoint {latest}"):
+        result = train(cfg("iterations=3", "resume=true"))
+    assert result["iteration"] == 3
+
+
+@pytest.mark.parametrize(("recipe", "change", "message"), [
+    ("maml", "seed=5", "seed: checkpoint has 0, this run has 5"),
+    ("maml", "trpo.max_kl=0.5", "trpo.max_kl: checkpoint has 0.01, this run has 0.5"),
+    ("maml", "env.horizon=12", "env.horizon: checkpoint has 10, this run has 12"),
+    ("diayn", "optim.lr=0.5", "optim.lr: checkpoint has 0.0003, this run has 0.5"),
+])
+def test_resume_with_a_changed_config_is_refused_with_the_keys(tmp_path, recipe, change, message):
+    train = importlib.import_module(f"recipes.{recipe}").train
+    key, stop, _ = BUDGET[recipe]
+    train(config(recipe, tmp_path, "point_nav", f"{key}={stop}"))
+    with pytest.raises(ConfigError, match=message):
+        train(config(recipe, tmp_path, "point_nav", f"{key}={stop * 2}", "resume=true", change))
