@@ -19,9 +19,8 @@ for half_cheetah's velocities), the same for a uniformly random policy under ``e
 Checkpoints: ``<output_dir>/checkpoints/step_<frames>.pt`` every ``checkpoint.every`` frames and at the end, format
 ``umrl.diayn.v1`` documented in :mod:`umrl.checkpoints.diayn`; load the results with
 ``umrl.checkpoints.load_discriminator(path)`` -> (D, num_skills, obs_dim) and ``load_skill_policy(path)`` ->
-(actor, num_skills, obs_dim). ``resume=true`` restores networks, optimisers, counters and the RNG; the replay buffer
-is not saved: it refills with the restored policy's data (``collector.init_random_frames`` frames) before updates
-resume.
+(actor, num_skills, obs_dim). ``resume=true`` restores networks, optimisers, counters, the replay buffer, every RNG and
+the envs' reset noise: the resumed run finishes bit-identical to an uninterrupted one (see :func:`train`).
 """
 from __future__ import annotations
 

@@ -24,7 +24,7 @@ figure ``<output_dir>/figures/coverage.png`` shows the last batch's visited stat
 Checkpoints: ``<output_dir>/checkpoints/step_<iteration>.pt``, format ``umrl.vime.v1`` (documented in
 :mod:`umrl.checkpoints.vime`); ``umrl.checkpoints.load_vime_policy(path)`` returns the policy to fine-tune.
 ``resume=true`` restores the policy, the dynamics model and its optimiser, the bonus normaliser, the transitions,
-the counters and the RNG.
+the counters, every RNG and the env's reset noise (bit-identical to an uninterrupted run).
 """
 from __future__ import annotations
 

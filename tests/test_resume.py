@@ -91,7 +91,9 @@ def test_sigkill_mid_iteration_then_resume_is_bit_identical(tmp_path):
 def test_resume_falls_back_past_a_truncated_checkpoint(tmp_path):
     from recipes.maml import train
 
-    cfg = lambda *o: config("maml", tmp_path, "point_nav", *o)  # noqa: E731
+    def cfg(*overrides):
+        return config("maml", tmp_path, "point_nav", *overrides)
+
     train(cfg("iterations=2"))
     latest = Checkpointer(tmp_path / "checkpoints").latest()
     latest.write_bytes(latest.read_bytes()[:100])
