@@ -37,7 +37,7 @@ from torchrl.envs import RewardSum
 from torchrl.objectives import SoftUpdate
 
 from umrl.checkpoints import DIAYN_FORMAT, save_diayn_checkpoint
-from umrl.configs import validate
+from umrl.configs import check_resume, validate
 from umrl.configs.diayn import DIAYNConfig
 from umrl.envs import get_env_spec, make_env
 from umrl.modules.discriminator import make_discriminator
@@ -120,7 +120,7 @@ def train(cfg: DictConfig) -> dict:
             "hidden": hidden, "discriminator_hidden": disc_hidden,
             "discriminator_observation_key": ["next", "observation"]}
     # FileNotFoundError says what is missing; ConfigError lists changed keys; ValueError if format or meta differ
-    state = DIAYN_FORMAT.load_for_resume(checkpointer, meta, cfg) if cfg.resume else None
+    state = DIAYN_FORMAT.load_for_resume(checkpointer, meta, lambda saved: check_resume(saved, cfg)) if cfg.resume else None
     # initialised on the CPU (the same weights on every device), then moved before the loss copies their parameters
     actor = make_skill_actor(obs_dim, num_skills, act_dim, hidden=hidden).to(device)
     discriminator = make_discriminator(obs_dim, num_skills, hidden=disc_hidden).to(device)

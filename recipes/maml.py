@@ -31,7 +31,7 @@ import tqdm
 from omegaconf import DictConfig
 
 from umrl.checkpoints import MAML_FORMAT, save_maml_checkpoint
-from umrl.configs import validate
+from umrl.configs import check_resume, validate
 from umrl.configs.maml import MAMLConfig
 from umrl.modules.policy import make_gaussian_policy
 from umrl.objectives.maml import MAMLLoss
@@ -150,7 +150,7 @@ def train(cfg: DictConfig) -> dict:
     }
     iteration, env_steps = 0, 0
     # FileNotFoundError says what is missing; ConfigError lists changed keys; ValueError if format or meta differ
-    state = MAML_FORMAT.load_for_resume(checkpointer, meta, cfg) if cfg.resume else None
+    state = MAML_FORMAT.load_for_resume(checkpointer, meta, lambda saved: check_resume(saved, cfg)) if cfg.resume else None
     if state is not None:
         policy.load_state_dict(state["policy"])
         iteration, env_steps = state["iteration"], state["env_steps"]

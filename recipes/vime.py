@@ -40,7 +40,7 @@ from tensordict import TensorDictBase
 from torchrl.data import LazyTensorStorage, ReplayBuffer, TensorDictReplayBuffer
 
 from umrl.checkpoints import VIME_FORMAT, save_vime_checkpoint
-from umrl.configs import validate
+from umrl.configs import check_resume, validate
 from umrl.configs.vime import VIMEConfig
 from umrl.envs import get_env_spec, make_env
 from umrl.modules.bnn import BayesianDynamics
@@ -139,7 +139,7 @@ def train(cfg: DictConfig) -> dict:
     initial_states = seen = None  # the untrained policy's visited states: the coverage figure's baseline
     initial_coverage: dict[str, float] = {}
     # FileNotFoundError says what is missing; ConfigError lists changed keys; ValueError if format or meta differ
-    state = VIME_FORMAT.load_for_resume(checkpointer, meta, cfg) if cfg.resume else None
+    state = VIME_FORMAT.load_for_resume(checkpointer, meta, lambda saved: check_resume(saved, cfg)) if cfg.resume else None
     if state is not None:
         policy.load_state_dict(state["policy"])
         dynamics.load_state_dict(state["dynamics"])

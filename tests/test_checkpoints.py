@@ -4,6 +4,7 @@ import torch
 
 from umrl import checkpoints
 from umrl.checkpoints import DIAYN_FORMAT, MAML_FORMAT, VIME_FORMAT, CheckpointFormat
+from umrl.configs import check_resume
 from umrl.runtime import Checkpointer
 
 LOADERS = {
@@ -38,17 +39,18 @@ def test_save_requires_the_meta_its_loaders_read(tmp_path):
 def test_resume_checks_format_and_meta(tmp_path):
     checkpointer = Checkpointer(tmp_path)
     with pytest.raises(FileNotFoundError, match="no checkpoint"):
-        MAML_FORMAT.load_for_resume(checkpointer, {}, {})
+        MAML_FORMAT.load_for_resume(checkpointer, {})
     meta = dict.fromkeys(MAML_FORMAT.meta_keys, 1)
     config = {"seed": 0, "iterations": 5}
     MAML_FORMAT.save(checkpointer, 1, meta, config)
-    assert MAML_FORMAT.load_for_resume(checkpointer, meta, {**config, "iterations": 9})["meta"] == meta
+    same = lambda saved: check_resume(saved, {**config, "iterations": 9})
+    assert MAML_FORMAT.load_for_resume(checkpointer, meta, same)["meta"] == meta
     with pytest.raises(ValueError, match=r"differs from the checkpoint's.*'horizon': \(1, 2\)"):
-        MAML_FORMAT.load_for_resume(checkpointer, {**meta, "horizon": 2}, config)
+        MAML_FORMAT.load_for_resume(checkpointer, {**meta, "horizon": 2})
     with pytest.raises(ValueError, match="seed: checkpoint has 0, this run has 3"):
-        MAML_FORMAT.load_for_resume(checkpointer, meta, {**config, "seed": 3})
+        MAML_FORMAT.load_for_resume(checkpointer, meta, lambda saved: check_resume(saved, {**config, "seed": 3}))
     with pytest.raises(ValueError, match="not a VIME checkpoint"):
-        VIME_FORMAT.load_for_resume(checkpointer, {}, config)
+        VIME_FORMAT.load_for_resume(checkpointer, {})
 
 
 def test_public_names():

@@ -7,12 +7,11 @@ one format, the ``meta`` keys its loaders read, and does the saving (stamping ``
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from umrl.configs.validate import check_resume
 from umrl.runtime import Checkpointer, read_checkpoint, resolve_checkpoint, to_container
 
 __all__ = ["CheckpointFormat"]
@@ -57,16 +56,18 @@ class CheckpointFormat:
         file = resolve_checkpoint(path)
         return self.check(read_checkpoint(file), file)
 
-    def load_for_resume(self, checkpointer: Checkpointer, meta: Mapping[str, Any], config: Any) -> dict:
+    def load_for_resume(self, checkpointer: Checkpointer, meta: Mapping[str, Any],
+                        check_config: Callable[[Any], None] | None = None) -> dict:
         """The newest readable checkpoint of ``checkpointer`` (an unreadable newer one is skipped with a warning
-        naming it), checked, for a run with ``config`` whose networks are described by ``meta``.
+        naming it), checked, for a run whose networks are described by ``meta``.
 
-        Raises ``ConfigError`` listing the keys where ``config`` differs from the checkpoint's saved config beyond
-        :data:`umrl.configs.RESUME_ALLOW` (seed, learning rates, env, widths, skill count...), and ``ValueError`` if
+        ``check_config(saved_config)`` runs first (recipes pass ``lambda saved: umrl.configs.check_resume(saved,
+        cfg)``: a ``ConfigError`` listing the keys that differ beyond ``RESUME_ALLOW``); then ``ValueError`` if
         ``meta`` differs from the saved one."""
         path, state = checkpointer.load_latest_valid()
         state = self.check(state, path)
-        check_resume(state["config"], config)
+        if check_config is not None:
+            check_config(state["config"])
         mismatched = {k: (state["meta"].get(k), v) for k, v in meta.items() if state["meta"].get(k) != v}
         if mismatched:
             raise ValueError(f"resume=true with a config that differs from the checkpoint's (saved, now): {mismatched}.")
