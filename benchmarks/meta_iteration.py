@@ -12,12 +12,12 @@ graph the meta-step reuses), post-update collection with every task's adapted pa
 collections and advantages), then the TRPO meta-step ("learn" = inner adaptation + TRPO step).
 
 The **arithmetic floor** is the learning step's matmul FLOPs (``torch.utils.flop_counter.FlopCounterMode`` over one
-untimed warm-up step) divided by the device's matmul rate, measured in the same run with one large ``torch.mm`` at
-the configured thread count; ``learn / floor`` is how far the step is from that bound. Each ``--task-loop`` variant
-(``batched``: one batched matmul per layer for all tasks; ``loop``: a Python loop over tasks; ``vmap``) gets its own
-policy from the same seed, so all variants do the same work; their iterations are interleaved and the medians of
-``--repeats`` runs are printed with same-run ratios. ``--metrics`` prints every iteration's TRPO numbers in full
-precision (same seed, same numbers: compare before/after a change).
+untimed warm-up step) divided by the device's matmul rate, measured in the same run (one large ``torch.mm`` at the
+configured thread count before every round of iterations, median); ``learn / floor`` is how far the step is from that
+bound. Each ``--task-loop`` variant (``batched``: one batched matmul per layer for all tasks; ``loop``: a Python loop
+over tasks; ``vmap``) gets its own policy from the same seed, so all variants do the same work; their iterations are
+interleaved and the medians of ``--repeats`` runs are printed with same-run ratios. ``--metrics`` prints every
+iteration's TRPO numbers in full precision (same seed, same numbers: compare before/after a change).
 """
 from __future__ import annotations
 
@@ -151,9 +151,10 @@ def main() -> None:
         flops[name] = counter.get_total_flops()
         if args.metrics:
             print(f"  {name} warm-up: {json.dumps(info)}", flush=True)
-    rate = matmul_rate(device, 4096 if device.type == "cuda" else 2048)
     rows = {name: {"collect_s": [], "learn_s": []} for name in variants}
+    rates = []
     for _ in range(args.repeats):
+        rates.append(matmul_rate(device, 4096 if device.type == "cuda" else 2048))
         for name, variant in variants.items():
             info = variant.iteration()
             rows[name]["collect_s"].append(info["collect_s"])
@@ -162,6 +163,7 @@ def main() -> None:
                   f"(backtracks {info['backtracks']:.0f}, kl {info['kl']:.5f})", flush=True)
             if args.metrics:
                 print(f"    {json.dumps(info)}", flush=True)
+    rate = statistics.median(rates)
     steps = 2 * args.tasks * args.trajectories * args.horizon
     print(f"\n{args.preset}: {args.env} {args.tasks} tasks x {args.trajectories} traj x {args.horizon} steps "
           f"({steps} env steps pre + post), hidden {list(args.hidden)}, inner lr {args.inner_lr}, hvp_fraction "
