@@ -4,37 +4,51 @@ Runs UML-DIAYN, UML-random, oracle, VIME-init, DIAYN-init and scratch on the cho
 
     python benchmarks/suite.py profile=quick                     # point_nav, reduced budgets, minutes on 2 cores
     python benchmarks/suite.py profile=paper envs=[point_nav]    # PROTOCOL.md settings
-    python benchmarks/suite.py profile=quick launcher.ray_address=auto   # cells as Ray tasks on a cluster
+    python benchmarks/suite.py profile=quick launcher.ray_address=auto   # jobs as Ray tasks on a cluster
+    python benchmarks/suite.py profile=quick device=auto         # pre-training and meta-test on a GPU if there is one
 
-1. **Pre-training** (jobs): DIAYN, VIME and MAML with each proposal (diayn after its DIAYN run), by invoking the
-   recipes as subprocesses with Hydra overrides (``pretrain.<recipe>.overrides``). A run that finished (marker file
-   ``suite_complete``) is reused; a killed one resumes from its last checkpoint; ``pretrain.<recipe>.reuse`` points
-   at existing runs (path templates with ``{env}``, ``{seed}``, ``{proposal}``). Meta-test seed ``seeds[i]`` uses
-   the runs of pre-training seed ``pretrain_seeds[i]`` (null: the same seed, independent pre-training per seed).
+0. **Validation**: the config is checked against :class:`umrl.configs.suite.SuiteConfig` and every recipe config
+   the suite will run is composed (``recipes.compose``) and checked against its schema, so every bad key or value
+   is listed before any work starts.
+1. **Pre-training** (jobs): DIAYN, VIME and MAML with each proposal (diayn after its DIAYN run), each
+   ``recipes.<recipe>.train(cfg)`` in a worker process, its config composed from the recipe's own yaml with the
+   suite's settings and ``pretrain.<recipe>.overrides``. Each run lives in
+   ``pretrain/<kind>/<env>/seed<s>-<key>/``, ``<key>`` a hash of its resolved config and the code version
+   (:mod:`umrl.metatest.cache`): a finished run (marker ``suite_complete``, or a checkpoint at the final step) is
+   reused, a killed one resumes from its last checkpoint, a changed config or code gets a new run.
+   ``pretrain.<recipe>.reuse`` points at existing runs instead (path templates with ``{env}``, ``{seed}``,
+   ``{proposal}``). Meta-test seed ``seeds[i]`` uses the runs of pre-training seed ``pretrain_seeds[i]`` (null: the
+   same seed, independent pre-training per seed).
 2. **Meta-test cells**: each (method, env, seed) -- and, for the SGD methods, each ``protocol.sgd_schedule`` -- is
    an independent job running :func:`umrl.metatest.run_cell` on a typed :class:`umrl.metatest.CellSpec`; its CSV
-   appears atomically when it finishes, and an existing CSV is never recomputed, so a killed suite resumes.
+   ``cells/<env>/<method>/seed<s>[.<schedule>]-<key>.csv`` (key: the spec, its checkpoint and the code version)
+   appears atomically when it finishes and is never recomputed, so a killed suite resumes.
 3. **Meta-training ablation**: the kept MAML checkpoints along meta-training are meta-tested the same way.
-4. **Reports** (built by :mod:`umrl.metatest.results`) under ``output_dir``: ``results.csv`` (tidy: method, env,
-   seed, task, step, return, lr_schedule), ``summary.md`` (return at k = 0, 1, 5, K and AUC: IQM and mean with
-   bootstrap CIs; pre-training seeds; commit, command, hardware and wall time), ``curves.png``, ``ablation.png`` /
-   ``ablation.md``, and wandb runs (offline by default) in one group per suite run.
+4. **Reports** (built by :mod:`umrl.metatest.results`) under ``output_dir`` from the cells of *this* config only:
+   ``results.csv`` (tidy: method, env, seed, task, step, return, lr_schedule), ``summary.md`` (return at
+   k = 0, 1, 5, K and AUC: IQM and mean with bootstrap CIs; pre-training seeds; commit, command, hardware and wall
+   time), ``curves.png``, ``ablation.png`` / ``ablation.md``, ``config.yaml`` (the validated config) and wandb runs
+   (offline by default, under ``output_dir/wandb``) in one group per suite run.
 
 This file schedules and launches only; what a cell computes and how results are tabulated live in
-:mod:`umrl.metatest`.
-
-Jobs run in a local process pool (``launcher.workers``) or as Ray tasks when ``launcher.ray_address`` is set
-(``local`` starts a Ray instance on this machine). Every value is a config override (``benchmarks/config/``).
+:mod:`umrl.metatest`. Jobs run as fresh worker processes (``launcher.workers`` at a time; their output goes to
+``logs/<job>.log``), in this process (``launcher.workers=0``) or as Ray tasks when ``launcher.ray_address`` is set
+(``local`` starts a Ray instance on this machine). The local workers are plain subprocesses (no multiprocessing
+semaphores: a suite killed with SIGKILL leaves nothing in ``/dev/shm``). A failed job is printed with its error and
+the tail of its log. Every value is a config override (``benchmarks/config/``).
 """
 from __future__ import annotations
 
 import concurrent.futures as cf
 import json
-import multiprocessing
 import os
+import pickle
+import re
 import shlex
+import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -43,8 +57,11 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
+import recipes
+from umrl.configs import ConfigError, validate
+from umrl.configs.suite import RECIPE_SCHEMAS, SuiteConfig
+from umrl.configs.validate import check_partial
 from umrl.metatest import (
-    SGD_SCHEDULES,
     CellSpec,
     Pretraining,
     ablation_curves,
@@ -63,21 +80,44 @@ from umrl.metatest import (
     summary_table,
     write_rows,
 )
-from umrl.runtime import Checkpointer, log_image, log_metrics, make_logger, to_container
+from umrl.metatest.cache import (
+    config_key,
+    keyed_config,
+    mark_done,
+    remove_stale_tmp,
+    run_finished,
+    source_version,
+    write_json_atomic,
+)
+from umrl.runtime import Checkpointer, log_image, log_metrics, make_logger, to_container, write_text_atomic
 
 REPO = Path(__file__).resolve().parents[1]
-DONE_MARKER = "suite_complete"
+LOG_TAIL = 25
+"""Lines of a failed job's log printed with its error."""
+
+BUDGET_KEYS = {"diayn": "collector.total_frames", "maml": "iterations", "vime": "iterations"}
+"""Each recipe's total budget, in the unit of its checkpoints' step numbers (``step_<N>.pt``: env frames for DIAYN,
+iterations for MAML and VIME): a run whose newest checkpoint reached it has finished its work."""
 
 
 # ----------------------------------------------------------------------------------------------------------------
 # Jobs and launchers
 
 
+class JobError(RuntimeError):
+    """A job that raised in a worker (``<ExceptionType>: <message>``; the traceback is in its log) or whose worker
+    died."""
+
+
 @dataclass
 class Job:
     """One unit of work: ``fn(*args, **kwargs)`` run by a launcher once every job in ``deps`` has succeeded.
 
-    ``done()`` says whether its result already exists (then it is skipped); ``on_success`` runs in the driver.
+    ``fn`` and its arguments must pickle by reference (importable functions, e.g. ``recipes.train`` or
+    ``umrl.metatest.run_cell``): workers are fresh processes or Ray tasks. ``done()`` says whether its result already
+    exists (then it is skipped); ``on_success`` runs in the driver; ``what`` is a one-line description for messages;
+    ``log`` the file the local launcher sends the worker's output to; ``fresh`` asks it for a worker process of the
+    job's own.
     """
 
     key: str
@@ -87,6 +127,9 @@ class Job:
     deps: tuple[str, ...] = ()
     done: Callable[[], bool] = lambda: False
     on_success: Callable[[], None] = lambda: None
+    what: str = ""
+    log: Path | None = None
+    fresh: bool = False
 
 
 class InlineLauncher:
@@ -94,10 +137,10 @@ class InlineLauncher:
 
     slots = 1
 
-    def submit(self, fn: Callable, *args, **kwargs) -> cf.Future:
+    def submit(self, job: Job) -> cf.Future:
         future: cf.Future = cf.Future()
         try:
-            future.set_result(fn(*args, **kwargs))
+            future.set_result(job.fn(*job.args, **job.kwargs))
         except Exception as err:  # noqa: BLE001 -- handed to the scheduler exactly like a worker's failure
             future.set_exception(err)
         return future
@@ -106,18 +149,115 @@ class InlineLauncher:
         return None
 
 
+_WORKER = """
+import os, pickle, sys, traceback
+tasks, results = os.fdopen(0, "rb"), os.fdopen(int(sys.argv[1]), "wb")
+while True:
+    try:
+        fn, args, kwargs, log = pickle.load(tasks)
+    except EOFError:
+        break
+    fd = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_APPEND)
+    os.dup2(fd, 1); os.dup2(fd, 2); os.close(fd)
+    try:
+        result = (True, fn(*args, **kwargs))
+    except BaseException as err:
+        traceback.print_exc()
+        result = (False, f"{type(err).__name__}: {err}")
+    sys.stdout.flush(); sys.stderr.flush()
+    pickle.dump(result, results); results.flush()
+"""
+"""A worker process: read ``(fn, args, kwargs, log)`` pickles from stdin, run each with its output appended to
+``log``, write ``(ok, result or "Type: message")`` pickles to the result pipe; exit at EOF."""
+
+
+class _Worker:
+    """One worker process of :class:`LocalLauncher` and its two pipes."""
+
+    def __init__(self, cwd: Path, env: Mapping[str, str]):
+        read, write = os.pipe()
+        self.process = subprocess.Popen([sys.executable, "-c", _WORKER, str(write)], cwd=cwd, env=dict(env),
+                                        stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                        pass_fds=(write,))
+        os.close(write)
+        self.results, self.jobs = os.fdopen(read, "rb"), 0
+
+    def run(self, job: Job, log: Path):
+        self.jobs += 1
+        try:
+            pickle.dump((job.fn, job.args, job.kwargs, str(log)), self.process.stdin)
+            self.process.stdin.flush()
+            ok, value = pickle.load(self.results)
+        except (EOFError, BrokenPipeError, pickle.UnpicklingError) as err:
+            raise JobError(f"the worker process died (exit code {self.process.wait()}) before finishing the job: "
+                           f"{type(err).__name__}") from None
+        if not ok:
+            raise JobError(value)
+        return value
+
+    def close(self, timeout: float = 10) -> None:
+        self.process.stdin.close()
+        try:
+            self.process.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
+        self.results.close()
+
+
 class LocalLauncher:
-    """A process pool (spawn) of ``workers`` processes; ``submit`` returns a ``concurrent.futures.Future``."""
+    """Up to ``workers`` jobs at once in worker processes: ``python`` subprocesses with ``threads`` torch/OpenMP
+    threads and working directory ``cwd``, each job's output appended to ``job.log``.
 
-    def __init__(self, workers: int):
-        self.slots = workers
-        self.pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+    A worker runs one job after another (imports paid once); a job with ``fresh=True`` (pre-training) gets a worker
+    of its own, started for it and ended after it, as a separate run would. Jobs pickle by reference, so this is
+    spawn-safe. No ``multiprocessing`` objects are involved: nothing is left in ``/dev/shm`` whatever kills the
+    suite, and a worker that dies fails its job only. ``shutdown`` terminates running workers.
+    """
 
-    def submit(self, fn: Callable, *args, **kwargs) -> cf.Future:
-        return self.pool.submit(fn, *args, **kwargs)
+    def __init__(self, workers: int, *, threads: int = 1, cwd: str | os.PathLike = "."):
+        self.slots, self.cwd = workers, Path(cwd)
+        self.env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads),
+                    "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
+        self.pool = cf.ThreadPoolExecutor(max_workers=workers)
+        self.idle: list[_Worker] = []
+        self.busy: set[_Worker] = set()
+        self.lock = threading.Lock()
+
+    def submit(self, job: Job) -> cf.Future:
+        return self.pool.submit(self._run, job)
+
+    def _run(self, job: Job):
+        with self.lock:
+            worker = None if job.fresh or not self.idle else self.idle.pop()
+        worker = worker or _Worker(self.cwd, self.env)
+        with self.lock:
+            self.busy.add(worker)
+        log = job.log or self.cwd / "logs" / "jobs.log"
+        log.parent.mkdir(parents=True, exist_ok=True)
+        with log.open("a") as out:
+            out.write(f"==== {time.strftime('%Y-%m-%dT%H:%M:%S')} {job.key}: {job.what}\n")
+        try:
+            return worker.run(job, log)
+        finally:
+            with self.lock:
+                self.busy.discard(worker)
+                keep = not job.fresh and worker.process.poll() is None
+                if keep:
+                    self.idle.append(worker)
+            if not keep:
+                worker.close()
 
     def shutdown(self) -> None:
-        self.pool.shutdown(wait=True, cancel_futures=True)
+        self.pool.shutdown(wait=False, cancel_futures=True)
+        with self.lock:
+            running, idle = list(self.busy), list(self.idle)
+            self.idle.clear()
+        for worker in running:
+            worker.process.terminate()
+        for worker in idle + running:
+            worker.close()
+        self.pool.shutdown(wait=True)
 
 
 class RayLauncher:
@@ -131,19 +271,42 @@ class RayLauncher:
         self.ray, self.cpus = ray, cpus_per_job
         self.slots = max(1, int(ray.cluster_resources().get("CPU", 1) // cpus_per_job))
 
-    def submit(self, fn: Callable, *args, **kwargs) -> cf.Future:
-        return self.ray.remote(num_cpus=self.cpus)(fn).remote(*args, **kwargs).future()
+    def submit(self, job: Job) -> cf.Future:
+        return self.ray.remote(num_cpus=self.cpus)(job.fn).remote(*job.args, **job.kwargs).future()
 
     def shutdown(self) -> None:  # the Ray instance belongs to whoever started it
         return None
 
 
-def make_launcher(launcher_cfg: Mapping):
-    """``RayLauncher`` when ``ray_address`` is set, else ``LocalLauncher`` (``InlineLauncher`` for 0 workers)."""
+def make_launcher(launcher_cfg: Mapping, output_dir: str | os.PathLike = "."):
+    """``RayLauncher`` when ``ray_address`` is set, else ``LocalLauncher`` (``InlineLauncher`` for 0 workers) whose
+    workers run in ``output_dir`` (so nothing a job writes by accident lands in the caller's directory)."""
     if launcher_cfg.get("ray_address"):
         return RayLauncher(str(launcher_cfg["ray_address"]), float(launcher_cfg.get("threads", 1)))
     workers = int(launcher_cfg.get("workers", 2))
-    return LocalLauncher(workers) if workers > 0 else InlineLauncher()
+    if workers == 0:
+        return InlineLauncher()
+    Path(output_dir).mkdir(parents=True, exist_ok=True)
+    return LocalLauncher(workers, threads=int(launcher_cfg.get("threads", 1)), cwd=output_dir)
+
+
+def log_tail(path: Path | None, lines: int = LOG_TAIL) -> str:
+    """The last ``lines`` lines of ``path`` ("" if there is no such file)."""
+    if path is None or not path.is_file():
+        return ""
+    with path.open("rb") as f:
+        f.seek(max(0, f.seek(0, os.SEEK_END) - 64 * 1024))
+        text = f.read().decode(errors="replace")
+    return "\n".join(text.splitlines()[-lines:])
+
+
+def failure_message(job: Job, err: BaseException) -> str:
+    """What a failed job prints: its description, the error and the tail of its log."""
+    lines = [f"[fail] {job.key}" + (f" ({job.what})" if job.what else ""), f"  error: {type(err).__name__}: {err}"]
+    tail = log_tail(job.log)
+    if tail:
+        lines += [f"  last lines of {job.log}:", *(f"    | {line}" for line in tail.splitlines())]
+    return "\n".join(lines)
 
 
 def run_jobs(jobs: Sequence[Job], launcher, *, log: Callable[[str], None] = print,
@@ -151,8 +314,8 @@ def run_jobs(jobs: Sequence[Job], launcher, *, log: Callable[[str], None] = prin
     """Run ``jobs`` respecting dependencies; returns (succeeded keys, {failed or blocked key: reason}).
 
     Jobs whose ``done()`` is true are not run. At most ``launcher.slots`` jobs run at once, so the wall time of each
-    successful job (written into ``timings``) excludes queueing. A failure does not stop independent jobs; its dependants are
-    blocked.
+    successful job (written into ``timings``) excludes queueing. A failure is printed through ``log`` with the job's
+    error and log tail; it does not stop independent jobs; its dependants are blocked.
     """
     keys = {job.key for job in jobs}
     if len(keys) != len(jobs):
@@ -171,11 +334,12 @@ def run_jobs(jobs: Sequence[Job], launcher, *, log: Callable[[str], None] = prin
             blocked = [d for d in job.deps if d in failed]
             if missing or blocked:
                 failed[key] = f"blocked by {missing or blocked}"
+                log(f"[blocked] {key}: {failed[key]}")
                 del pending[key]
             elif all(d in succeeded for d in job.deps) and len(running) < launcher.slots:
                 log(f"[start] {key}")
                 started[key] = time.perf_counter()
-                running[launcher.submit(job.fn, *job.args, **job.kwargs)] = job
+                running[launcher.submit(job)] = job
                 del pending[key]
         if not running:
             break
@@ -186,9 +350,9 @@ def run_jobs(jobs: Sequence[Job], launcher, *, log: Callable[[str], None] = prin
             try:
                 future.result()
                 job.on_success()
-            except Exception as err:  # noqa: BLE001 -- recorded; run_suite raises once independent jobs ran
-                failed[job.key] = f"{type(err).__name__}: {err}"
-                log(f"[fail] {job.key}: {failed[job.key]}")
+            except Exception as err:  # noqa: BLE001 -- printed; run_suite raises once independent jobs ran
+                failed[job.key] = f"{type(err).__name__}: {err}".splitlines()[0][:300]
+                log(failure_message(job, err))
             else:
                 succeeded.add(job.key)
                 timings[job.key] = seconds
@@ -204,145 +368,216 @@ def pretrain_key(run: Pretraining, env: str, seed: int) -> str:
     return f"pretrain/{run.kind}/{env}/seed{seed}"
 
 
-def _plain(value):
-    """A config node as plain Python (lists and dicts), anything else as it is (for error messages)."""
-    return OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
-
-
 def sgd_schedules(cfg: DictConfig) -> list[str]:
-    """``protocol.sgd_schedule`` as a list: one schedule, or several (the SGD methods get one cell per schedule)."""
+    """``protocol.sgd_schedule`` (validated) as a list: the SGD methods get one cell per schedule."""
     value = cfg.protocol.sgd_schedule
-    schedules = [str(value)] if isinstance(value, str) else [str(v) for v in value]
-    bad = [s for s in schedules if s not in SGD_SCHEDULES]
-    if not schedules or bad:
-        raise ValueError(f"protocol.sgd_schedule: got {_plain(value)!r}; accepted: one of {list(SGD_SCHEDULES)} "
-                         "or a non-empty list of them.")
-    return schedules
+    return [str(value)] if isinstance(value, str) else [str(v) for v in value]
 
 
 def pretrain_seeds(cfg: DictConfig) -> list[int]:
-    """The pre-training seed of each meta-test seed: ``pretrain_seeds`` null (= the meta-test seeds: independent
-    pre-training), an int (one run shared by every seed) or a list as long as ``seeds``."""
+    """The pre-training seed of each meta-test seed (``pretrain_seeds`` validated): null = the meta-test seeds
+    (independent pre-training), an int = one run shared by every seed, or a list as long as ``seeds``."""
     value, seeds = cfg.pretrain_seeds, [int(s) for s in cfg.seeds]
     if value is None:
         return seeds
-    if isinstance(value, int) and not isinstance(value, bool):
+    if isinstance(value, int):
         return [value] * len(seeds)
-    values = [int(v) for v in value] if OmegaConf.is_list(value) or isinstance(value, (list, tuple)) else None
-    if values is None or len(values) != len(seeds):
-        raise ValueError(f"pretrain_seeds: got {_plain(value)!r}; "
-                         f"accepted: null, an int, or a list of {len(seeds)} ints (one per seed in {seeds}).")
-    return values
+    return [int(v) for v in value]
 
 
-def cell_path(cfg: DictConfig, env: str, method: str, seed: int, lr_schedule: str = "constant") -> Path:
-    """A cell's CSV: ``cells/<env>/<method>/seed<s>.csv`` (``seed<s>.<schedule>.csv`` for a non-constant schedule)."""
-    suffix = "" if lr_schedule == "constant" else f".{lr_schedule}"
-    return Path(cfg.output_dir).absolute() / "cells" / env / method / f"seed{seed}{suffix}.csv"
-
-
-def pretrain_dir(cfg: DictConfig, run: Pretraining, env: str, seed: int) -> Path:
-    """Where pre-training ``run`` of (env, seed) lives (``pretrain.<recipe>.reuse`` wins)."""
-    template = cfg.pretrain[run.recipe].get("reuse")
-    if isinstance(template, Mapping) or OmegaConf.is_dict(template):
-        template = template.get(run.proposal)
-    if template:
-        return Path(str(template).format(env=env, seed=seed, proposal=run.proposal)).absolute()
-    return Path(cfg.output_dir).absolute() / "pretrain" / run.kind / env / f"seed{seed}"
-
-
-def _has_checkpoint(run_dir: Path) -> bool:
-    return Checkpointer(run_dir / "checkpoints").latest() is not None
-
-
-def pretrain_done(cfg: DictConfig, run: Pretraining, env: str, seed: int) -> bool:
-    run_dir = pretrain_dir(cfg, run, env, seed)
-    if cfg.pretrain[run.recipe].get("reuse") and _has_checkpoint(run_dir):
-        return True  # an external run given by the user: taken as it is
-    return (run_dir / DONE_MARKER).exists()
+def _hydra_value(value) -> str:
+    """A value in Hydra's override grammar (lists as ``[a,b]``, null, strings quoted unless plain)."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, (list, tuple)):
+        return f"[{','.join(_hydra_value(v) for v in value)}]"
+    if isinstance(value, str) and not re.fullmatch(r"[\w./:+-]+", value):
+        return "'" + value.replace("\\", "\\\\").replace("'", "\\'") + "'"
+    return str(value)
 
 
 def hydra_overrides(values: Mapping, prefix: str = "") -> list[str]:
-    """``{"a": {"b": 1}, "c": [1, 2]}`` -> ``["a.b=1", "c=[1,2]"]`` (Hydra command-line overrides)."""
+    """``{"a": {"b": 1}, "c": [1, 2]}`` -> ``["a.b=1", "c=[1,2]"]`` (Hydra overrides for ``recipes.compose``)."""
     out = []
     for key, value in (to_container(values) if OmegaConf.is_config(values) else dict(values)).items():
         name = f"{prefix}{key}"
         if isinstance(value, Mapping):
             out += hydra_overrides(value, prefix=f"{name}.")
-        elif isinstance(value, (list, tuple)):
-            out.append(f"{name}=[{','.join(str(v) for v in value)}]")
         else:
-            out.append(f"{name}={'null' if value is None else value}")
+            out.append(f"{name}={_hydra_value(value)}")
     return out
 
 
-def pretrain_command(cfg: DictConfig, run: Pretraining, env: str, seed: int, group: str) -> list[str]:
-    """The recipe invocation (Hydra overrides) for one pre-training run; resumes if a checkpoint exists."""
-    spec = cfg.pretrain[run.recipe]
-    run_dir = pretrain_dir(cfg, run, env, seed)
-    cmd = [sys.executable, str(REPO / spec.recipe), f"env.name={env}", f"seed={seed}", f"output_dir={run_dir}",
-           f"logger.backend={cfg.logger.backend}", f"logger.group={group}", "progress=false"]
+@dataclass(frozen=True)
+class PretrainRun:
+    """One pre-training run of the plan.
+
+    Attributes:
+        run: what it trains; ``env``, ``seed``: where and with which seed.
+        run_dir: its output directory (``pretrain/<kind>/<env>/seed<s>-<key>``, or the ``reuse`` path).
+        overrides: the overrides ``recipes.train(run.recipe, overrides)`` runs it with (``resume=true`` when a
+            checkpoint exists); empty for a reused run.
+        key: hash of its resolved config (less :data:`umrl.metatest.cache.UNKEYED`) and the code version; None for
+            a reused run.
+        budget: its total budget in checkpoint steps (``BUDGET_KEYS``); None for a reused run.
+    """
+
+    run: Pretraining
+    env: str
+    seed: int
+    run_dir: Path
+    overrides: tuple[str, ...] = ()
+    key: str | None = None
+    budget: int | None = None
+
+    @property
+    def reused(self) -> bool:
+        return self.key is None
+
+    def done(self) -> bool:
+        """A reused run is taken as it is; a suite run is done once finished (:func:`run_finished`)."""
+        return self.reused or run_finished(self.run_dir, self.budget)
+
+    def describe(self) -> str:
+        return f"{self.run.kind} pre-training on {self.env}, seed {self.seed} -> {self.run_dir}"
+
+
+def _reuse_dir(cfg: DictConfig, run: Pretraining, env: str, seed: int) -> Path | None:
+    template = cfg.pretrain[run.recipe].get("reuse")
+    if isinstance(template, Mapping) or OmegaConf.is_dict(template):
+        template = template.get(run.proposal)
+    return Path(str(template).format(env=env, seed=seed, proposal=run.proposal)).absolute() if template else None
+
+
+def _suite_overrides(cfg: DictConfig, run: Pretraining, env: str, seed: int, group: str,
+                     runs: Mapping[tuple[str, str, int], PretrainRun]) -> list[str]:
+    """What the suite sets in a recipe's config: env, seed, device, logging, MAML's proposal and DIAYN run; then the
+    user's ``pretrain.<recipe>.overrides`` (which win)."""
+    values = {"env.name": env, "seed": seed, "device": cfg.device, "logger.backend": cfg.logger.backend,
+              "logger.group": group, "progress": False}
     if run.recipe == "maml":
-        cmd += [f"proposal={run.proposal}", "checkpoint.keep_all=true"]
+        values.update({"proposal": run.proposal, "checkpoint.keep_all": True})
         for needed in run.requires:
-            cmd.append(f"{spec.diayn_checkpoint_key}={pretrain_dir(cfg, needed, env, seed)}")
-    cmd += hydra_overrides(spec.get("overrides") or {})
-    if _has_checkpoint(run_dir):
-        cmd.append("resume=true")
-    return cmd
+            values[cfg.pretrain.maml.diayn_checkpoint_key] = str(runs[needed.kind, env, seed].run_dir)
+    return [f"{k}={_hydra_value(v)}" for k, v in values.items()] + hydra_overrides(
+        cfg.pretrain[run.recipe].get("overrides") or {})
 
 
-def _pretrain_job(cfg: DictConfig, run: Pretraining, env: str, seed: int, group: str) -> Job:
-    run_dir = pretrain_dir(cfg, run, env, seed)
-    log_file = Path(cfg.output_dir).absolute() / "logs" / f"{run.kind}_{env}_seed{seed}.log"
-    log_file.parent.mkdir(parents=True, exist_ok=True)
-    threads = str(cfg.launcher.threads)
-    environ = {**os.environ, "OMP_NUM_THREADS": threads, "MKL_NUM_THREADS": threads, "PYTHONPATH": str(REPO)}
+def plan_pretraining(cfg: DictConfig, group: str, code: str) -> dict[tuple[str, str, int], PretrainRun]:
+    """Every pre-training run the config needs, ``(kind, env, seed) -> PretrainRun``, runs before those that read them.
 
-    shell = f"{shlex.join(pretrain_command(cfg, run, env, seed, group))} > {shlex.quote(str(log_file))} 2>&1"
-    return Job(key=pretrain_key(run, env, seed), fn=subprocess.run, args=(["bash", "-c", shell],),
-               deps=tuple(pretrain_key(r, env, seed) for r in run.requires),
-               kwargs={"check": True, "cwd": str(REPO), "env": environ},
-               done=lambda: pretrain_done(cfg, run, env, seed),
-               on_success=lambda: (run_dir / DONE_MARKER).write_text(time.strftime("%Y-%m-%dT%H:%M:%S")))
+    Each recipe config is composed with ``recipes.compose`` and checked against its schema here, so a renamed or
+    misspelt key or a bad value fails before any work (:class:`~umrl.configs.ConfigError` listing every problem).
+    """
+    runs: dict[tuple[str, str, int], PretrainRun] = {}
+    errors: list[str] = []
+    needed = {get_method(m).pretraining for m in cfg.methods} - {None}
+    needed |= {r for run in needed for r in run.requires}
+    ordered = sorted(needed, key=lambda r: (len(r.requires), r.kind))  # DIAYN before MAML(diayn)
+    for env in cfg.envs:
+        for seed in sorted(set(pretrain_seeds(cfg))):
+            for run in ordered:
+                reuse = _reuse_dir(cfg, run, env, seed)
+                if reuse is not None:
+                    runs[run.kind, env, seed] = PretrainRun(run, env, seed, reuse)
+                    continue
+                overrides = _suite_overrides(cfg, run, env, seed, group, runs)
+                name = f"pretrain.{run.recipe} ({run.kind}, {env}, seed {seed})"
+                try:
+                    composed = recipes.compose(run.recipe, overrides)
+                except Exception as err:  # noqa: BLE001 -- Hydra's override/compose errors, reported with the rest
+                    errors.append(f"{name}: {type(err).__name__}: {str(err).splitlines()[0]}")
+                    continue
+                values = to_container(composed)
+                problems = check_partial(values, RECIPE_SCHEMAS[run.recipe], prefix=f"{name}: ")
+                budget = OmegaConf.select(composed, BUDGET_KEYS[run.recipe])
+                if budget is None:
+                    problems.append(f"{name}: the recipe config has no {BUDGET_KEYS[run.recipe]!r} (its budget); "
+                                    "update BUDGET_KEYS in benchmarks/suite.py")
+                if problems:
+                    errors += problems
+                    continue
+                key = config_key(keyed_config(values), code)
+                run_dir = Path(cfg.output_dir).absolute() / "pretrain" / run.kind / env / f"seed{seed}-{key}"
+                has_checkpoint = Checkpointer(run_dir / "checkpoints").latest() is not None
+                overrides += [f"output_dir={_hydra_value(str(run_dir))}", f"resume={_hydra_value(has_checkpoint)}"]
+                runs[run.kind, env, seed] = PretrainRun(run, env, seed, run_dir, tuple(overrides), key, int(budget))
+    if errors:
+        raise ConfigError("suite pre-training configs", errors)
+    return runs
 
 
-def cell_spec(cfg: DictConfig, method: str, env: str, seed: int, output: Path, checkpoint: str | None, *,
-              lr_schedule: str = "constant", num_steps: int | None = None, **extra) -> CellSpec:
-    """The typed :class:`CellSpec` of one cell from the suite config (``num_steps`` overrides ``protocol``'s K)."""
+def _pretrain_job(cfg: DictConfig, run: PretrainRun) -> Job:
+    log = Path(cfg.output_dir).absolute() / "logs" / f"pretrain_{run.run.kind}_{run.env}_seed{run.seed}.log"
+    return Job(key=pretrain_key(run.run, run.env, run.seed), fn=recipes.train, args=(run.run.recipe, list(run.overrides)),
+               deps=tuple(pretrain_key(r, run.env, run.seed) for r in run.run.requires), done=run.done,
+               on_success=(lambda: None) if run.reused else (lambda: mark_done(run.run_dir)),
+               what=run.describe(), log=log, fresh=True)
+
+
+def checkpoint_identity(run: PretrainRun, checkpoint: str | os.PathLike) -> str:
+    """What a cell's key records of its checkpoint: the path of a suite run (its key is in the path), or for a
+    ``reuse`` run the path with the newest checkpoint's name, size and modification time (a replaced run is seen)."""
+    if not run.reused:
+        return str(checkpoint)
+    path = Path(checkpoint)
+    file = path if path.is_file() else Checkpointer(path / "checkpoints").latest()
+    if file is None:
+        return str(path)
+    stat = file.stat()
+    return f"{path}@{file.name}:{stat.st_size}:{stat.st_mtime_ns}"
+
+
+def cell_spec(cfg: DictConfig, method: str, env: str, seed: int, checkpoint: str | None, *,
+              lr_schedule: str = "constant", num_steps: int | None = None, **extra) -> dict:
+    """The settings of one cell (a :class:`CellSpec` mapping without ``output``; ``num_steps`` overrides K)."""
     protocol = {**to_container(cfg.protocol), "sgd_schedule": lr_schedule}
     if num_steps is not None:
         protocol["num_steps"] = num_steps
-    return CellSpec.from_mapping({
-        "method": method, "env": env, "seed": seed, "output": str(output), "checkpoint": checkpoint,
-        "protocol": protocol, "num_tasks": cfg.num_tasks, "adam_lr": cfg.adam_lr, "sgd_lr": cfg.sgd_lr,
-        "sweep": to_container(cfg.sweep), "skill_trajectories": cfg.skill_trajectories,
-        "threads": cfg.launcher.threads, "extra": extra})
+    return {"method": method, "env": env, "seed": seed, "checkpoint": checkpoint, "protocol": protocol,
+            "num_tasks": cfg.num_tasks, "adam_lr": cfg.adam_lr, "sgd_lr": cfg.sgd_lr, "sweep": to_container(cfg.sweep),
+            "skill_trajectories": cfg.skill_trajectories, "threads": cfg.launcher.threads, "device": cfg.device,
+            "extra": extra}
+
+
+def keyed_cell(settings: Mapping, checkpoint_id: str | None, code: str, stem: Path) -> CellSpec:
+    """The :class:`CellSpec` of ``settings`` writing ``<stem>-<key>.csv``, ``key`` hashing the settings, the
+    checkpoint's identity and the code version (the spec is validated here)."""
+    key = config_key({**settings, "checkpoint": checkpoint_id}, code)
+    return CellSpec.from_mapping({**settings, "output": str(stem.with_name(f"{stem.name}-{key}.csv"))})
 
 
 def _cell_schedules(cfg: DictConfig, method: str) -> list[str]:
     return sgd_schedules(cfg) if get_method(method).optimizer == "sgd" else ["constant"]
 
 
-def plan(cfg: DictConfig, group: str) -> list[Job]:
-    """Pre-training jobs and one meta-test job per (method, env, seed[, SGD schedule]) cell."""
-    methods = [get_method(m) for m in cfg.methods]
+def plan(cfg: DictConfig, group: str, code: str = "", runs: Mapping | None = None) -> list[Job]:
+    """Pre-training jobs and one meta-test job per (method, env, seed[, SGD schedule]) cell of a validated config
+    (``runs``: :func:`plan_pretraining`'s, computed here if not given)."""
+    runs = plan_pretraining(cfg, group, code) if runs is None else runs
+    out = Path(cfg.output_dir).absolute()
     jobs: dict[str, Job] = {}
     for env in cfg.envs:
         for seed, pseed in zip(cfg.seeds, pretrain_seeds(cfg)):
-            for method in methods:
-                run, deps, checkpoint = method.pretraining, (), None
-                if run is not None:
-                    for needed in (*run.requires, run):
-                        jobs.setdefault(pretrain_key(needed, env, pseed), _pretrain_job(cfg, needed, env, pseed, group))
-                    deps = (pretrain_key(run, env, pseed),)
-                    checkpoint = str(pretrain_dir(cfg, run, env, pseed))
+            for method in map(get_method, cfg.methods):
+                pretraining, deps, checkpoint, checkpoint_id = method.pretraining, (), None, None
+                if pretraining is not None:
+                    for needed in (*pretraining.requires, pretraining):
+                        run = runs[needed.kind, env, pseed]
+                        jobs.setdefault(pretrain_key(needed, env, pseed), _pretrain_job(cfg, run))
+                    run = runs[pretraining.kind, env, pseed]
+                    deps, checkpoint = (pretrain_key(pretraining, env, pseed),), str(run.run_dir)
+                    checkpoint_id = checkpoint_identity(run, checkpoint)
                 for schedule in _cell_schedules(cfg, method.name):
-                    output = cell_path(cfg, env, method.name, seed, schedule)
-                    spec = cell_spec(cfg, method.name, env, seed, output, checkpoint, lr_schedule=schedule)
-                    suffix = "" if schedule == "constant" else f"/{schedule}"
-                    key = f"cell/{env}/{method.name}/seed{seed}{suffix}"
-                    jobs[key] = Job(key=key, fn=run_cell, args=(spec,), deps=deps, done=output.exists)
+                    suffix = "" if schedule == "constant" else f".{schedule}"
+                    settings = cell_spec(cfg, method.name, env, seed, checkpoint, lr_schedule=schedule)
+                    spec = keyed_cell(settings, checkpoint_id, code, out / "cells" / env / method.name / f"seed{seed}{suffix}")
+                    key = f"cell/{env}/{method.name}/seed{seed}{suffix.replace('.', '/')}"
+                    jobs[key] = Job(key=key, fn=run_cell, args=(spec,), deps=deps, done=Path(spec.output).exists,
+                                    what=f"meta-test of {method.name} on {env}, seed {seed} -> {spec.output}",
+                                    log=out / "logs" / f"cell_{env}_{method.name}_seed{seed}{suffix}.log")
     # Pre-training first, runs others depend on before them (DIAYN before MAML(diayn)), so the critical path starts at once.
     def rank(job: Job) -> tuple[bool, int]:
         needed_by_others = any(job.key in other.deps for other in jobs.values() if other.key.startswith("pretrain/"))
@@ -351,28 +586,33 @@ def plan(cfg: DictConfig, group: str) -> list[Job]:
     return sorted(jobs.values(), key=rank)
 
 
-def plan_ablation(cfg: DictConfig) -> list[Job]:
+def plan_ablation(cfg: DictConfig, runs: Mapping, code: str = "") -> list[Job]:
     """Meta-test jobs for up to ``ablation.max_checkpoints`` kept MAML checkpoints (evenly spaced, last included)."""
     jobs = []
+    out = Path(cfg.output_dir).absolute()
     for env in cfg.envs:
         for name in cfg.ablation.methods:
-            run = get_method(name).pretraining
-            if name not in cfg.methods or run is None or run.recipe != "maml":
+            pretraining = get_method(name).pretraining
+            if name not in cfg.methods or pretraining is None or pretraining.recipe != "maml":
                 continue
             for seed in cfg.ablation.seeds:
                 pseed = pretrain_seeds(cfg)[list(cfg.seeds).index(seed)] if seed in cfg.seeds else seed
-                files = Checkpointer(pretrain_dir(cfg, run, env, pseed) / "checkpoints").all()
-                if not files:
+                if (pretraining.kind, env, pseed) not in runs:
                     continue
+                run = runs[pretraining.kind, env, pseed]
+                files = Checkpointer(run.run_dir / "checkpoints").all()
                 count = min(len(files), int(cfg.ablation.max_checkpoints))
-                picks = sorted({round(i * (len(files) - 1) / max(count - 1, 1)) for i in range(count)})
+                picks = sorted({round(i * (len(files) - 1) / max(count - 1, 1)) for i in range(count)}) if files else []
                 for file in (files[i] for i in picks):
                     iteration = int(file.stem.split("_")[-1])
-                    output = Path(cfg.output_dir).absolute() / "ablation" / env / name / f"seed{seed}" / f"iter{iteration}.csv"
-                    spec = cell_spec(cfg, name, env, seed, output, str(file), lr_schedule=sgd_schedules(cfg)[0],
-                                     num_steps=int(cfg.ablation.num_steps), iteration=iteration)
+                    settings = cell_spec(cfg, name, env, seed, str(file), lr_schedule=sgd_schedules(cfg)[0],
+                                         num_steps=int(cfg.ablation.num_steps), iteration=iteration)
+                    spec = keyed_cell(settings, checkpoint_identity(run, file), code,
+                                      out / "ablation" / env / name / f"seed{seed}" / f"iter{iteration}")
                     key = f"ablation/{env}/{name}/seed{seed}/iter{iteration}"
-                    jobs.append(Job(key=key, fn=run_cell, args=(spec,), done=output.exists))
+                    jobs.append(Job(key=key, fn=run_cell, args=(spec,), done=Path(spec.output).exists,
+                                    what=f"ablation meta-test of {name} on {env}, seed {seed}, {file.name}",
+                                    log=out / "logs" / f"ablation_{env}_{name}_seed{seed}_iter{iteration}.log"))
     return jobs
 
 
@@ -380,12 +620,13 @@ def plan_ablation(cfg: DictConfig) -> list[Job]:
 # Reports
 
 
-def report(cfg: DictConfig, group: str, timings: Mapping[str, float], *, wall_seconds: float) -> str:
-    """Write results.csv, summary.md, curves.png (+ ablation) and log them to wandb; returns the markdown."""
+def report(cfg: DictConfig, group: str, timings: Mapping[str, float], cells: Sequence[Path],
+           ablation: Sequence[Path] = (), *, wall_seconds: float) -> str:
+    """Write results.csv, summary.md, curves.png (+ ablation) from this config's ``cells`` and ``ablation`` CSVs
+    (missing ones are left out: failed jobs) and log them to wandb; returns the markdown."""
     out = Path(cfg.output_dir)
-    cells = [cell_path(cfg, env, m, s, schedule) for env in cfg.envs for m in cfg.methods
-             for schedule in _cell_schedules(cfg, m) for s in cfg.seeds]
-    rows = read_rows([p for p in cells if p.exists()])
+    cells = [Path(p) for p in cells if Path(p).exists()]
+    rows = read_rows(cells)
     if not rows:
         raise RuntimeError(f"no finished cells under {out / 'cells'}: nothing to report (see {out / 'logs'}).")
     write_rows(rows, out / "results.csv")
@@ -393,7 +634,8 @@ def report(cfg: DictConfig, group: str, timings: Mapping[str, float], *, wall_se
     plot_adaptation_curves(curves_from_rows(rows, methods=list(cfg.methods)), out / "curves.png",
                            styles=arm_styles(rows))
     settings = OmegaConf.to_yaml(OmegaConf.create({k: to_container(cfg)[k] for k in (
-        "envs", "methods", "seeds", "pretrain_seeds", "num_tasks", "protocol", "adam_lr", "sgd_lr", "sweep")}))
+        "envs", "methods", "seeds", "pretrain_seeds", "num_tasks", "protocol", "adam_lr", "sgd_lr", "sweep",
+        "device")}))
     lrs = {}
     for p in cells:
         if p.with_suffix(".json").exists():
@@ -403,33 +645,33 @@ def report(cfg: DictConfig, group: str, timings: Mapping[str, float], *, wall_se
     lr_lines = [f"- {env} / {method}: lr {sorted(v)}" for (env, method), v in sorted(lrs.items())]
     time_lines = [f"- {k}: {v:.0f} s" for k, v in timings.items()] + [
         "", "(Jobs run with launcher.workers in parallel; per-job times of every invocation are in timings.json.)"]
-    ablation_files = sorted((out / "ablation").rglob("iter*.csv")) if (out / "ablation").exists() else []
-    ablation_rows = [r for r in read_rows(ablation_files) if r["env"] in cfg.envs and r["method"] in cfg.methods]
+    ablation_rows = read_rows([Path(p) for p in ablation if Path(p).exists()])
     ablation_md = None
     if ablation_rows:
         curves = ablation_curves(ablation_rows, metric="auc")
         plot_ablation(curves, out / "ablation.png", metric=f"meta-test AUC (k = 0..{cfg.ablation.num_steps})",
                       styles=arm_styles(ablation_rows))
         ablation_md = ablation_table(curves)
-        (out / "ablation.md").write_text(ablation_md)
+        write_text_atomic(out / "ablation.md", ablation_md)
     record = provenance(command=shlex.join([Path(sys.executable).name, *sys.argv]), wall_seconds=wall_seconds,
                         job_threads=int(cfg.launcher.threads))
     markdown = suite_summary(table, profile=cfg.profile_name, pretraining=pretraining_note(
         list(cfg.seeds), pretrain_seeds(cfg)), lr_lines=lr_lines, time_lines=time_lines, settings_yaml=settings,
         provenance=record, ablation=ablation_md)
-    (out / "summary.md").write_text(markdown)
+    write_text_atomic(out / "summary.md", markdown)
     _log_to_wandb(cfg, group, rows, records, out)
     return markdown
 
 
 def _log_to_wandb(cfg: DictConfig, group: str, rows, records, out: Path) -> None:
-    """One run per (env, arm) with the mean curve and summary metrics, plus a report run with the figures."""
+    """One run per (env, arm) with the mean curve and summary metrics, plus a report run with the figures; wandb
+    runs land in ``out/wandb`` (or ``$WANDB_DIR/wandb``)."""
     logger_cfg = {**to_container(cfg.logger), "group": group}
     curves = curves_from_rows(rows)
     for env, methods in curves.items():
         for method, curve in methods.items():
             logger = make_logger(logger_cfg, exp_name=f"{method}_{env}".replace(" ", "_"),
-                                 config={"method": method, "env": env})
+                                 config={"method": method, "env": env}, log_dir=out)
             for k, (m, lo, hi) in enumerate(zip(curve.mean, curve.low, curve.high)):
                 log_metrics(logger, {"meta_test/return": m, "meta_test/return_low": lo,
                                      "meta_test/return_high": hi}, step=k)
@@ -437,7 +679,7 @@ def _log_to_wandb(cfg: DictConfig, group: str, rows, records, out: Path) -> None
                        if r["env"] == env and r["method"] == method}
             log_metrics(logger, summary, step=len(curve.mean) - 1)
             _finish(logger)
-    logger = make_logger(logger_cfg, exp_name="report", config=to_container(cfg))
+    logger = make_logger(logger_cfg, exp_name="report", config=to_container(cfg), log_dir=out)
     for name in ("curves", "ablation"):
         if (out / f"{name}.png").exists():
             log_image(logger, f"report/{name}", out / f"{name}.png", step=0)
@@ -455,15 +697,15 @@ def _finish(logger) -> None:
 
 
 def suite_group(cfg: DictConfig) -> str:
-    """The wandb group: ``logger.group`` or ``suite-<profile>-<first start>``, stable across resumes."""
+    """The wandb group: ``logger.group`` or ``suite-<profile>-<first start>``, stable across resumes (kept in
+    ``suite_state.json``, written atomically)."""
     if cfg.logger.get("group"):
         return str(cfg.logger.group)
     state = Path(cfg.output_dir) / "suite_state.json"
     if state.exists():
         return json.loads(state.read_text())["group"]
     group = f"suite-{cfg.profile_name}-{time.strftime('%Y%m%d-%H%M%S')}"
-    state.parent.mkdir(parents=True, exist_ok=True)
-    state.write_text(json.dumps({"group": group}))
+    write_json_atomic(state, {"group": group})
     return group
 
 
@@ -481,27 +723,57 @@ def summarize_timings(history: Sequence[Mapping]) -> dict[str, float]:
     return timings
 
 
+def code_version() -> str:
+    """The hash of the sources every result depends on (``umrl/`` and ``recipes/``, configs included)."""
+    import umrl
+
+    return source_version([Path(umrl.__file__).parent, Path(recipes.__file__).parent])
+
+
+def _raise_on_sigterm(signum, frame):  # a `kill` stops the suite like Ctrl-C: running workers are terminated
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
 def run_suite(cfg: DictConfig, *, log: Callable[[str], None] = print) -> str:
-    """Plan, run (resuming), ablate and report; raises if any job failed (after reporting what finished)."""
+    """Validate, plan, run (resuming), ablate and report; raises if any job failed (after reporting what finished).
+
+    Every bad input (suite keys, recipe overrides, missing ``reuse`` runs) raises
+    :class:`~umrl.configs.ConfigError` before any job starts.
+    """
+    cfg = validate(cfg, SuiteConfig)
+    out = Path(cfg.output_dir).absolute()
+    code = code_version()
     group = suite_group(cfg)
+    runs = plan_pretraining(cfg, group, code)
+    jobs = plan(cfg, group, code, runs)
+    for stale in remove_stale_tmp(out):
+        log(f"[clean] removed {stale} (left by a killed write)")
+    write_text_atomic(out / "config.yaml", OmegaConf.to_yaml(cfg))
     start = time.perf_counter()
     job_times: dict[str, float] = {}
-    launcher = make_launcher(cfg.launcher)
+    ablation: list[Job] = []
+    launcher = make_launcher(cfg.launcher, out)
+    previous = signal.signal(signal.SIGTERM, _raise_on_sigterm) if threading.current_thread() is threading.main_thread() else None
     try:
-        _, failed = run_jobs(plan(cfg, group), launcher, log=log, timings=job_times)
+        _, failed = run_jobs(jobs, launcher, log=log, timings=job_times)
         if cfg.ablation.enabled:
-            failed.update(run_jobs(plan_ablation(cfg), launcher, log=log, timings=job_times)[1])
+            ablation = plan_ablation(cfg, runs, code)
+            failed.update(run_jobs(ablation, launcher, log=log, timings=job_times)[1])
     finally:
         launcher.shutdown()
-    timings_file = Path(cfg.output_dir) / "timings.json"
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    timings_file = out / "timings.json"
     history = json.loads(timings_file.read_text()) if timings_file.exists() else []
     history.append({"wall": time.perf_counter() - start, "jobs": job_times})
-    timings_file.write_text(json.dumps(history, indent=1))
-    markdown = report(cfg, group, summarize_timings(history), wall_seconds=sum(inv["wall"] for inv in history))
+    write_json_atomic(timings_file, history)
+    cells = [Path(job.args[0].output) for job in jobs if job.key.startswith("cell/")]
+    markdown = report(cfg, group, summarize_timings(history), cells, [Path(j.args[0].output) for j in ablation],
+                      wall_seconds=sum(inv["wall"] for inv in history))
     log(markdown)
-    log(f"reports in {Path(cfg.output_dir).resolve()} (wandb group {group})")
+    log(f"reports in {out} (wandb group {group})")
     if failed:
-        raise RuntimeError("some jobs failed (logs in " f"{Path(cfg.output_dir) / 'logs'}):\n"
+        raise RuntimeError(f"{len(failed)} job(s) failed or were blocked (errors printed above; logs in {out / 'logs'}):\n"
                            + "\n".join(f"  {k}: {v}" for k, v in failed.items()))
     return markdown
 

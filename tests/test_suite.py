@@ -1,4 +1,5 @@
-"""Benchmark suite: planning, skipping finished cells, resuming a killed run, the Ray launcher."""
+"""Benchmark suite: planning, skipping finished cells, resuming a killed run, the Ray launcher (cache keys,
+validation and failures: test_suite_cache.py)."""
 import importlib.util
 import os
 import signal
@@ -10,24 +11,27 @@ from pathlib import Path
 import pytest
 from script_loading import compose_config
 
-from umrl.metatest import Pretraining, read_rows, write_rows
+from umrl.configs import ConfigError, validate
+from umrl.configs.suite import SuiteConfig
+from umrl.metatest import read_rows, write_rows
 
 REPO = Path(__file__).resolve().parents[1]
 _spec = importlib.util.spec_from_file_location("umrl_suite", REPO / "benchmarks" / "suite.py")
 suite = sys.modules["umrl_suite"] = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(suite)
 
-TINY = ["num_tasks=2", "protocol.num_steps=1", "protocol.num_trajectories=2", "protocol.horizon=10",
+TINY = ["num_tasks=2", "protocol.num_steps=1", "protocol.num_trajectories=2", "protocol.horizon=10", "report.steps=[0]",
         "logger.backend=none", "ablation.enabled=false", "launcher.threads=1"]
 
 
 def _cfg(tmp_path, *overrides):
-    return compose_config("benchmarks/config", "suite", [f"output_dir={tmp_path}", *TINY, *overrides])
+    cfg = compose_config("benchmarks/config", "suite", [f"output_dir={tmp_path}", *TINY, *overrides])
+    return validate(cfg, SuiteConfig)
 
 
 def test_plan_dependencies_and_shared_pretraining(tmp_path):
     cfg = _cfg(tmp_path, "seeds=[0,1]", "pretrain_seeds=0", "methods=[uml_diayn,diayn_init,scratch]")
-    jobs = {job.key: job for job in suite.plan(cfg, group="g")}
+    jobs = {job.key: job for job in suite.plan(cfg, group="g", code="code")}
     # one DIAYN and one MAML(diayn) run shared by both seeds; MAML(diayn) waits for DIAYN
     assert sorted(k for k in jobs if k.startswith("pretrain")) == [
         "pretrain/diayn/point_nav/seed0", "pretrain/maml_diayn/point_nav/seed0"]
@@ -35,13 +39,17 @@ def test_plan_dependencies_and_shared_pretraining(tmp_path):
     assert jobs["cell/point_nav/uml_diayn/seed1"].deps == ("pretrain/maml_diayn/point_nav/seed0",)
     assert jobs["cell/point_nav/diayn_init/seed1"].deps == ("pretrain/diayn/point_nav/seed0",)
     assert jobs["cell/point_nav/scratch/seed0"].deps == ()
-    command = jobs["pretrain/maml_diayn/point_nav/seed0"].args[0][-1]
-    assert "proposal=diayn" in command and "checkpoint.keep_all=true" in command and "resume=true" not in command
+    # the recipe's own train through the package API, with composed overrides (no command line)
+    job = jobs["pretrain/maml_diayn/point_nav/seed0"]
+    assert job.fn.__module__ == "recipes" and job.args[0] == "maml"
+    runs = suite.plan_pretraining(cfg, "g", "code")
+    diayn_dir = runs["diayn", "point_nav", 0].run_dir
+    assert {"proposal=diayn", "checkpoint.keep_all=true", "resume=false", "device=cpu",
+            f"diayn_checkpoint={diayn_dir}"} <= set(job.args[1])
     # a checkpoint in the run dir makes the recipe resume instead of starting over
-    ckpt_dir = tmp_path / "pretrain" / "diayn" / "point_nav" / "seed0" / "checkpoints"
-    ckpt_dir.mkdir(parents=True)
-    (ckpt_dir / "step_10.pt").write_bytes(b"")
-    assert "resume=true" in suite.pretrain_command(cfg, Pretraining("diayn"), "point_nav", 0, "g")
+    (diayn_dir / "checkpoints").mkdir(parents=True)
+    (diayn_dir / "checkpoints" / "step_10.pt").write_bytes(b"")
+    assert "resume=true" in suite.plan_pretraining(cfg, "g", "code")["diayn", "point_nav", 0].overrides
 
 
 def test_independent_pretraining_per_seed_and_both_sgd_schedules(tmp_path):
@@ -58,18 +66,18 @@ def test_independent_pretraining_per_seed_and_both_sgd_schedules(tmp_path):
         "cell/point_nav/uml_random/seed0", "cell/point_nav/uml_random/seed0/reference",
         "cell/point_nav/uml_random/seed1", "cell/point_nav/uml_random/seed1/reference"]
     ref = jobs["cell/point_nav/uml_random/seed1/reference"].args[0]
-    assert ref.protocol.sgd_schedule == "reference" and ref.output.endswith("seed1.reference.csv")
-    assert ref.checkpoint.endswith("maml_random/point_nav/seed1")
+    assert ref.protocol.sgd_schedule == "reference" and Path(ref.output).name.startswith("seed1.reference-")
+    assert "/maml_random/point_nav/seed1-" in ref.checkpoint
     explicit = _cfg(tmp_path, "seeds=[0,1]", "pretrain_seeds=[7,8]", "methods=[uml_random]")
     assert "pretrain/maml_random/point_nav/seed8" in {j.key for j in suite.plan(explicit, group="g")}
-    with pytest.raises(ValueError, match=r"pretrain_seeds: got \[7\].*a list of 2 ints"):
-        suite.plan(_cfg(tmp_path, "seeds=[0,1]", "pretrain_seeds=[7]", "methods=[uml_random]"), group="g")
-    with pytest.raises(ValueError, match=r"protocol.sgd_schedule: got 'halving'.*constant"):
-        suite.plan(_cfg(tmp_path, "methods=[uml_random]", "protocol.sgd_schedule=halving"), group="g")
+    with pytest.raises(ConfigError, match=r"pretrain_seeds: got \[7\].*a list of 2 integers"):
+        _cfg(tmp_path, "seeds=[0,1]", "pretrain_seeds=[7]", "methods=[uml_random]")
+    with pytest.raises(ConfigError, match=r"protocol.sgd_schedule: got 'halving'.*constant"):
+        _cfg(tmp_path, "methods=[uml_random]", "protocol.sgd_schedule=halving")
 
 
 def test_paper_profile_runs_k100_both_schedules_independent_pretraining():
-    cfg = compose_config("benchmarks/config", "suite", ["profile=paper"])
+    cfg = validate(compose_config("benchmarks/config", "suite", ["profile=paper"]), SuiteConfig)
     assert cfg.protocol.num_steps == 100 and list(cfg.protocol.sgd_schedule) == ["constant", "reference"]
     assert cfg.pretrain_seeds is None
     assert suite.pretrain_seeds(cfg) == list(cfg.seeds)
@@ -94,7 +102,8 @@ def test_existing_cell_is_skipped(tmp_path):
     planted = [{"method": "scratch", "env": "point_nav", "seed": 0, "task": t, "step": k, "return": 123.0,
                 "lr_schedule": "constant"}
                for k in range(2) for t in range(2)]
-    existing = write_rows(planted, suite.cell_path(cfg, "point_nav", "scratch", 0))
+    cell = next(j for j in suite.plan(cfg, group="g") if j.key == "cell/point_nav/scratch/seed0").args[0]
+    existing = write_rows(planted, cell.output)
     suite.run_suite(cfg, log=lambda _: None)
     assert read_rows([existing]) == planted  # untouched
     rows = read_rows([tmp_path / "results.csv"])
@@ -109,17 +118,17 @@ def test_killed_suite_completes_on_restart(tmp_path):
     env = {**os.environ, "WANDB_MODE": "disabled"}
     first = subprocess.Popen(cmd, cwd=REPO, env=env, start_new_session=True, stdout=subprocess.DEVNULL,
                              stderr=subprocess.DEVNULL)
-    cells = [tmp_path / "cells" / "point_nav" / "scratch" / f"seed{s}.csv" for s in range(4)]
     deadline = time.time() + 90
-    while not any(c.exists() for c in cells) and time.time() < deadline and first.poll() is None:
+    while not (finished := list((tmp_path / "cells").rglob("seed*.csv"))) and time.time() < deadline \
+            and first.poll() is None:
         time.sleep(0.2)
     os.killpg(first.pid, signal.SIGKILL)  # the suite and its workers die mid-run
     first.wait()
-    finished = {c: c.stat().st_mtime_ns for c in cells if c.exists()}
+    finished = {c: c.stat().st_mtime_ns for c in (tmp_path / "cells").rglob("seed*.csv")}
     assert finished and len(finished) < 4, "the kill should land between the first and the last cell"
     assert not (tmp_path / "results.csv").exists()
     subprocess.run(cmd, cwd=REPO, env=env, check=True, capture_output=True, timeout=120)
-    assert all(c.exists() for c in cells)
+    assert len(list((tmp_path / "cells").rglob("seed*.csv"))) == 4
     assert {c: c.stat().st_mtime_ns for c in finished} == finished  # finished cells were not recomputed
     assert {r["seed"] for r in read_rows([tmp_path / "results.csv"])} == {0, 1, 2, 3}
 

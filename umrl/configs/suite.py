@@ -16,6 +16,7 @@ from umrl.configs.validate import (
     check_partial,
     checked,
     choice_list,
+    device,
     int_list,
     integer,
     mapping,
@@ -30,19 +31,9 @@ from umrl.metatest.protocol import SGD_SCHEDULES
 from umrl.runtime import Checkpointer
 from umrl.validation import InvalidType, InvalidValue, check_choice, check_int, check_list, check_str
 
-REPO = Path(__file__).resolve().parents[2]
 RECIPE_SCHEMAS = {"diayn": DIAYNConfig, "maml": MAMLConfig, "vime": VIMEConfig}
 """The schema each ``pretrain.<recipe>.overrides`` is checked against."""
 MAML_METHODS = tuple(m.name for m in METHODS.values() if m.pretraining and m.pretraining.recipe == "maml")
-
-
-def check_recipe(name: str, value: Any) -> str:
-    """A recipe script path relative to the repository root (how the suite invokes it) that exists."""
-    check_str(name, value)
-    if not (REPO / value).is_file():
-        raise InvalidValue(name, value, "a recipe script relative to the repository root",
-                           note=f"{REPO / value} is not a file")
-    return value
 
 
 def check_reuse(name: str, value: Any) -> str | dict | None:
@@ -112,10 +103,9 @@ class SweepConfig:
 
 @dataclass
 class PretrainConfig:
-    """One recipe's pre-training: its ``recipe`` script, ``reuse`` (finished runs used as they are: must hold a
+    """One recipe's pre-training (``recipes.<name>.train``): ``reuse`` (finished runs used as they are: must hold a
     checkpoint) and ``overrides`` (recipe keys, checked against the recipe's schema)."""
 
-    recipe: str = checked(check_recipe)
     reuse: Any = checked(check_reuse)
     overrides: dict[str, Any] = mapping()
 
@@ -179,6 +169,7 @@ class SuiteConfig:
     launcher: LauncherConfig = field(default_factory=LauncherConfig)
     report: ReportConfig = field(default_factory=ReportConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
+    device: str = device()
     output_dir: str = string()
 
     @staticmethod
