@@ -49,9 +49,11 @@ from umrl.runtime import (
     env_state,
     isolated_rng,
     load_env_state,
+    load_replay_buffer_state,
     log_image,
     log_metrics,
     make_logger,
+    replay_buffer_state,
     rng_state,
     seed_everything,
     set_rng_state,
@@ -147,7 +149,7 @@ def train(cfg: DictConfig) -> dict:
 
     def save() -> Path:
         return save_diayn_checkpoint(checkpointer, meta=meta, actor=actor, discriminator=discriminator, loss=loss,
-                                     optimizers=optimizers, counters=counters, replay=buffer.state_dict(),
+                                     optimizers=optimizers, counters=counters, replay=replay_buffer_state(buffer),
                                      rng=rng_state(), envs={"train": env_state(env), "eval": env_state(eval_env)},
                                      config=cfg)
 
@@ -174,7 +176,7 @@ def train(cfg: DictConfig) -> dict:
     random_metrics = {f"eval/random_{k}": v for k, v in coverage_metrics(baseline, num_skills, discriminator).items()}
     log_metrics(logger, random_metrics, counters["frames"])
     if state is not None:  # after everything that draws while setting up: the loop starts where the saved one stood
-        buffer.load_state_dict(state["replay"])
+        load_replay_buffer_state(buffer, state["replay"])
         load_env_state(env, state["envs"]["train"])
         load_env_state(eval_env, state["envs"]["eval"])
         set_rng_state(state["rng"])

@@ -55,8 +55,10 @@ from umrl.runtime import (
     check_finite,
     env_state,
     load_env_state,
+    load_replay_buffer_state,
     log_metrics,
     make_logger,
+    replay_buffer_state,
     rng_state,
     seed_everything,
     set_rng_state,
@@ -147,7 +149,7 @@ def train(cfg: DictConfig) -> dict:
         bonus.median_history.copy_(state["median_history"])
         for buffer, stored in ((replay, state["replay"]), (holdout, state["holdout"])):
             if stored is not None:  # TorchRL's buffer state: contents, write cursor, sampler
-                buffer.load_state_dict(stored)
+                load_replay_buffer_state(buffer, stored)
         seen = None if state["visited"] is None else state["visited"].to(device)
         counters.update(state["counters"])
         initial_coverage, initial_states = state["initial_coverage"], state["initial_states"]
@@ -158,8 +160,8 @@ def train(cfg: DictConfig) -> dict:
         keep = cfg.checkpoint.save_replay
         return save_vime_checkpoint(
             checkpointer, meta=meta, policy=policy, dynamics=dynamics, dynamics_optimizer=optimizer,
-            median_history=bonus.median_history, replay=replay.state_dict() if keep else None,
-            holdout=holdout.state_dict() if keep else None, counters=counters, initial_coverage=initial_coverage,
+            median_history=bonus.median_history, replay=replay_buffer_state(replay) if keep else None,
+            holdout=replay_buffer_state(holdout) if keep else None, counters=counters, initial_coverage=initial_coverage,
             initial_states=initial_states, visited=seen, rng=rng_state(), env=env_state(env), config=cfg)
 
     if counters["iteration"] >= cfg.iterations:

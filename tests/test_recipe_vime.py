@@ -8,6 +8,7 @@ from torchrl.modules import ProbabilisticActor
 
 from recipes import compose
 from umrl.checkpoints import load_vime_checkpoint, load_vime_dynamics, load_vime_policy
+from umrl.runtime import load_replay_buffer_state
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
@@ -27,11 +28,11 @@ def tiny_config(output_dir, *overrides):
 
 
 def stored_transitions(state) -> int:
-    """Transitions in a checkpoint's replay + held-out buffers (TorchRL buffer state dicts)."""
+    """Transitions in a checkpoint's replay + held-out buffers (:func:`umrl.runtime.replay_buffer_state`)."""
     total = 0
     for key in ("replay", "holdout"):
         buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(1000))
-        buffer.load_state_dict(state[key])
+        load_replay_buffer_state(buffer, state[key])
         total += len(buffer)
     return total
 

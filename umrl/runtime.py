@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
+from torchrl.data import ReplayBuffer
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.record.loggers import Logger, get_logger
 
@@ -83,6 +84,26 @@ def load_env_state(env: EnvBase, state: Mapping[str, Any]) -> None:
         env.transform.load_state_dict(state["transform"])
     else:
         env.load_state_dict(state["env"])
+
+
+def replay_buffer_state(buffer: ReplayBuffer) -> dict:
+    """TorchRL's ``buffer.state_dict()`` with the storage cut to its filled rows.
+
+    A ``LazyTensorStorage`` allocates all ``max_size`` rows on its first write and its ``state_dict`` holds them all
+    (a 10⁶-row DIAYN buffer was ~250 MB per checkpoint after 1,000 transitions); rows are written from 0 up until
+    the buffer wraps, so the first ``len(buffer)`` rows are the whole content."""
+    state = buffer.state_dict()
+    filled = len(buffer.storage)  # a clone: a slice view would pickle the whole allocation
+    state["_storage"] = {"rows": buffer.storage[:filled].clone() if filled else None}
+    return state
+
+
+def load_replay_buffer_state(buffer: ReplayBuffer, state: Mapping[str, Any]) -> None:
+    """Restore what :func:`replay_buffer_state` took into a buffer built the same way (same storage size)."""
+    rows = state["_storage"]["rows"]
+    if rows is not None:
+        buffer.storage.set(torch.arange(len(rows), device=rows.device), rows)
+    buffer.load_state_dict({**state, "_storage": buffer.storage.state_dict()})
 
 
 def to_container(config: Any) -> dict:

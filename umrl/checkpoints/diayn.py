@@ -12,7 +12,8 @@ A checkpoint is a ``torch.save``'d dict:
 - ``"loss"``: state dict of the :class:`~umrl.objectives.diayn.DIAYNLoss` (actor, twin Q-networks and their targets,
   discriminator, alpha), ``"optimizers"``: ``{"actor", "qvalue", "discriminator"[, "alpha"]}`` Adam state dicts;
 - ``"counters"``: ``frames`` (env steps), ``updates``, ``next_eval``, ``next_checkpoint``, ``update_credit``;
-- ``"replay"``: the replay buffer's ``state_dict()`` (TorchRL's own buffer checkpointing: storage, sampler, writer);
+- ``"replay"``: :func:`umrl.runtime.replay_buffer_state` (TorchRL's ``state_dict``: sampler, writer, and the storage
+  cut to its filled rows);
 - ``"rng"``: :func:`umrl.runtime.rng_state` (torch, numpy, python); ``"envs"``: ``{"train", "eval"}``
   :func:`umrl.runtime.env_state` (MuJoCo reset noise, transforms), all for a bit-identical ``resume=true``;
 - ``"config"``: the resolved recipe config (also written beside it as ``config.yaml``).

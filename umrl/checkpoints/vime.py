@@ -11,8 +11,8 @@ latest), with
   ``"action"``, ``"action_log_prob"``);
 - ``"dynamics"``: state dict of :class:`~umrl.modules.bnn.BayesianDynamics` (posterior and running statistics);
 - ``"dynamics_optimizer"``: Adam state; ``"median_history"``: the bonus normaliser's recent medians;
-- ``"replay"`` / ``"holdout"``: the dynamics model's transition buffers (TorchRL ``ReplayBuffer.state_dict()``:
-  storage, write cursor, sampler) or ``None`` (``checkpoint.save_replay=false``: a resume is then not faithful);
+- ``"replay"`` / ``"holdout"``: the dynamics model's transition buffers (:func:`umrl.runtime.replay_buffer_state`:
+  TorchRL's state dict with the storage cut to its filled rows) or ``None`` (``checkpoint.save_replay=false``: a resume is then not faithful);
 - ``"counters"``: ``iteration``, ``frames``; ``"initial_coverage"``: coverage of the untrained policy;
   ``"initial_states"``: the untrained policy's visited states (the coverage figure's baseline); ``"visited"``: the
   cells (or velocity range) visited so far;
