@@ -6,8 +6,8 @@
 
 Data flow: ``make_env`` -> ``SkillTransform`` (one uniform one-hot skill per episode) -> ``DiscriminatorReward``
 (log D(z|s') + log K, for the logged returns) -> TorchRL ``Collector`` -> replay buffer -> ``DIAYNLoss`` (relabels
-every sampled batch with the current discriminator, SAC + discriminator cross-entropy) -> Adam; target Q-networks
-by ``SoftUpdate``.
+every sampled batch with the current discriminator, SAC + discriminator cross-entropy) -> ``DIAYNUpdate`` (Adam steps,
+target Q-networks by ``SoftUpdate``; ``optim.compile`` / ``optim.cudagraphs`` on a GPU).
 
 Logged (namespaced): ``train/`` losses, ``discriminator_accuracy`` (on replay samples), ``pseudo_reward``,
 ``entropy``, ``episode_return`` (undiscounted pseudo-return of finished episodes); ``eval/`` on fresh rollouts of
@@ -34,7 +34,6 @@ from omegaconf import DictConfig
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import RewardSum
-from torchrl.objectives import SoftUpdate
 
 from umrl.checkpoints import DIAYN_FORMAT, save_diayn_checkpoint
 from umrl.configs import check_resume, validate
@@ -42,7 +41,7 @@ from umrl.configs.diayn import DIAYNConfig
 from umrl.envs import get_env_spec, make_env
 from umrl.modules.discriminator import make_discriminator
 from umrl.modules.sac import make_skill_actor, make_skill_qvalue
-from umrl.objectives.diayn import DIAYNLoss
+from umrl.objectives.diayn import DIAYNLoss, DIAYNUpdate, make_diayn_optimizers
 from umrl.runtime import (
     Checkpointer,
     check_finite,
@@ -130,15 +129,10 @@ def train(cfg: DictConfig) -> dict:
     loss = DIAYNLoss(actor, qvalue, discriminator, num_skills=num_skills, alpha_init=cfg.optim.alpha,
                      fixed_alpha=cfg.optim.fixed_alpha, target_entropy=-float(act_dim)).to(device)
     loss.make_value_estimator(gamma=cfg.optim.gamma)
-    target_updater = SoftUpdate(loss.sac_loss, tau=cfg.optim.tau)
-    sac = loss.sac_loss
-    optimizers = {
-        "actor": torch.optim.Adam(sac.actor_network_params.values(True, True), lr=cfg.optim.lr),
-        "qvalue": torch.optim.Adam(sac.qvalue_network_params.values(True, True), lr=cfg.optim.lr),
-        "discriminator": torch.optim.Adam(discriminator.parameters(), lr=cfg.optim.discriminator_lr),
-    }
-    if not cfg.optim.fixed_alpha:
-        optimizers["alpha"] = torch.optim.Adam([sac.log_alpha], lr=cfg.optim.lr)
+    optimizers = make_diayn_optimizers(loss, lr=cfg.optim.lr, discriminator_lr=cfg.optim.discriminator_lr,
+                                       capturable=cfg.optim.cudagraphs)
+    # before the restore: TorchRL's SoftUpdate copies the online Q-networks into the targets when it is built
+    update = DIAYNUpdate(loss, optimizers, tau=cfg.optim.tau, compile=cfg.optim.compile, cudagraphs=cfg.optim.cudagraphs)
     counters = {"frames": 0, "updates": 0, "next_eval": cfg.eval.every, "next_checkpoint": cfg.checkpoint.every,
                 "update_credit": 0.0}
     if state is not None:
@@ -198,25 +192,20 @@ def train(cfg: DictConfig) -> dict:
         if len(buffer) >= warmup:
             counters["update_credit"] += data.numel() * cfg.optim.updates_per_frame
             for _ in range(int(counters["update_credit"])):
-                out = loss(buffer.sample())
-                losses = {k: v for k, v in out.items() if k.startswith("loss_")}
-                check_finite(losses, f"DIAYN update {counters['updates']}")
-                for optimizer in optimizers.values():
-                    optimizer.zero_grad(set_to_none=True)
-                sum(losses.values()).backward()
-                for optimizer in optimizers.values():
-                    optimizer.step()
-                target_updater.step()
-                logs.append(out.detach())
-                counters["updates"] += 1
+                logs.append(update(buffer.sample()))
             counters["update_credit"] -= int(counters["update_credit"])
+        if logs:  # once per batch of updates: a per-update check would wait on the GPU after every update
+            stacked = torch.stack(logs)
+            check_finite({k: v for k, v in stacked.items() if k.startswith("loss_")},
+                         f"DIAYN updates {counters['updates']}..{counters['updates'] + len(logs) - 1}")
+            counters["updates"] += len(logs)
         update_time = time.perf_counter() - update_start
 
         metrics = {"time/env_steps_per_s": data.numel() / max(collect_time, 1e-9),
                    "time/elapsed_s": time.perf_counter() - start, "train/frames": counters["frames"],
                    "train/updates": counters["updates"]}
         if logs:
-            mean = torch.stack(logs).float().mean()
+            mean = stacked.float().mean()
             metrics.update({f"train/{k}": float(v) for k, v in mean.items()})
             metrics["time/updates_per_s"] = len(logs) / max(update_time, 1e-9)
         finished = data["next", "done"].squeeze(-1)

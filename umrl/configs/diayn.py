@@ -37,6 +37,8 @@ class OptimConfig:
     tau: float = number(gt=0, le=1)
     alpha: float = number(ge=0)
     fixed_alpha: bool = boolean()
+    compile: bool = boolean()
+    cudagraphs: bool = boolean()
 
 
 @dataclass

@@ -196,6 +196,9 @@ def check_partial(values: Mapping, schema: type, prefix: str = "") -> list[str]:
 # --- resume ----------------------------------------------------------------------------------------------------------
 
 RESUME_ALLOW = (
+    "device",
+    "optim.compile",
+    "optim.cudagraphs",
     "iterations",
     "collector.total_frames",
     "checkpoint.every",
@@ -205,9 +208,10 @@ RESUME_ALLOW = (
     "resume",
     "output_dir",
 )
-"""Keys that may change when a run resumes: the total budget (``iterations``, ``collector.total_frames``), how often
-checkpoints are written and kept, logging, the progress bar, ``resume`` itself and ``output_dir`` (a moved run).
-Every other key (seed, env, widths, skill counts, learning rates, TRPO settings, device...) must match the
+"""Keys that may change when a run resumes: where and how it computes (``device``: checkpoints load on any device;
+DIAYN's ``optim.compile`` / ``optim.cudagraphs``), the total budget (``iterations``, ``collector.total_frames``), how
+often checkpoints are written and kept, logging, the progress bar, ``resume`` itself and ``output_dir`` (a moved run).
+Every other key (seed, env, widths, skill counts, learning rates, TRPO settings...) must match the
 checkpoint's saved config: changing it would silently continue a different run. An entry covers its sub-keys."""
 
 _ABSENT = "<absent>"
