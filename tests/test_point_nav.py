@@ -1,4 +1,6 @@
 """point_nav: PROTOCOL.md semantics, specs, partial resets."""
+import re
+
 import pytest
 import torch
 from torchrl.envs.utils import check_env_specs
@@ -64,12 +66,14 @@ def test_rollouts_are_reproducible_with_a_seed():
     "kwargs, match",
     [
         ({"name": "point_navv"}, "valid choices"),
-        ({"name": "point_nav", "num_envs": 0}, "positive"),
-        ({"name": "point_nav", "num_envs": -3}, "positive"),
-        ({"name": "point_nav", "horizon": 0}, "horizon"),
-        ({"name": "ant", "backend": "brax"}, "valid choices"),
+        ({"name": "point_nav", "num_envs": 0}, re.escape("num_envs: got 0; expected an integer >= 1")),
+        ({"name": "point_nav", "num_envs": -3}, re.escape("num_envs: got -3; expected an integer >= 1")),
+        ({"name": "point_nav", "horizon": 0}, re.escape("horizon: got 0; expected an integer >= 1")),
+        ({"name": "point_nav", "horizon": 2.5}, re.escape("horizon: got 2.5; expected an integer >= 1")),
+        ({"name": "ant", "backend": "brax"}, re.escape("backend: got 'brax'; expected one of 'default'")),
     ],
 )
 def test_bad_input_is_rejected_with_a_clear_message(kwargs, match):
-    with pytest.raises(ValueError, match=match):
+    with pytest.raises((TypeError, ValueError), match=match):
         make_env(**kwargs)
+

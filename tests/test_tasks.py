@@ -76,3 +76,9 @@ def test_unknown_family_lists_choices():
     with pytest.raises(ValueError, match="valid choices"):
         get_task_family("humanoid")
     assert set(ENV_NAMES) == {"point_nav", "half_cheetah", "ant"}
+
+
+def test_non_finite_tasks_are_refused_with_their_position():
+    tasks = torch.tensor([[0.1, 0.2], [float("nan"), 0.0]])
+    with pytest.raises(ValueError, match=r"point_nav tasks: .*1 non-finite, first at index \(1, 0\)"):
+        make_task_env("point_nav", tasks)

@@ -14,6 +14,7 @@ from umrl.envs import builtin  # noqa: F401  (registers point_nav, half_cheetah,
 from umrl.envs.registry import ENV_NAMES, EnvSpec, get_env_spec, register_env, unregister_env
 from umrl.envs.task_reward import TaskReward
 from umrl.envs.tasks import TaskFamily, get_task_family
+from umrl.validation import check_choice, check_int
 
 BACKENDS = ("default", "batched", "gym")
 
@@ -41,12 +42,9 @@ def make_env(
             wrapper over a gymnasium sync vector env, the reference). Ignored for point_nav.
     """
     spec = get_env_spec(name)
-    if not isinstance(num_envs, int) or num_envs < 1:
-        raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}.")
-    if horizon < 1:
-        raise ValueError(f"horizon must be a positive integer, got {horizon!r}.")
-    if backend not in BACKENDS:
-        raise ValueError(f"unknown backend {backend!r}; valid choices: {list(BACKENDS)}.")
+    num_envs = check_int("num_envs", num_envs, min=1)
+    horizon = check_int("horizon", horizon, min=1)
+    backend = check_choice("backend", backend, BACKENDS)
     base = spec.make(num_envs, seed=seed, device=device, backend=backend)
     if isinstance(base, TransformedEnv):  # the gym backend already carries transforms: extend them, don't nest
         base.append_transform(StepCounter(max_steps=horizon))

@@ -23,6 +23,7 @@ import torch
 from tensordict import TensorDictBase
 
 from umrl.envs.registry import get_env_spec
+from umrl.validation import check_finite
 
 #: Seed of the held-out evaluation tasks; never used to draw meta-training tasks.
 EVAL_TASK_SEED = 20190531
@@ -72,7 +73,7 @@ class TaskFamily:
             )
         if batch_size is not None and tasks.shape[0] != batch_size:
             raise ValueError(f"got {tasks.shape[0]} tasks for an env batch of {batch_size}: give one task per env copy.")
-        return tasks.to(torch.float32)
+        return check_finite(f"{self.env_name} tasks", tasks.to(torch.float32))
 
     def reward(self, next_td: TensorDictBase, action: torch.Tensor, task: torch.Tensor) -> torch.Tensor:
         """Task reward ``[B, 1]`` from the ``"next"`` physics keys, the action ``[B, act_dim]`` and tasks ``[B, task_dim]``."""
