@@ -102,12 +102,14 @@ def test_existing_cell_is_skipped(tmp_path):
     planted = [{"method": "scratch", "env": "point_nav", "seed": 0, "task": t, "step": k, "return": 123.0,
                 "lr_schedule": "constant"}
                for k in range(2) for t in range(2)]
-    cell = next(j for j in suite.plan(cfg, group="g") if j.key == "cell/point_nav/scratch/seed0").args[0]
+    jobs = suite.plan(cfg, group="g", code=suite.code_version())
+    cell = next(j for j in jobs if j.key == "cell/point_nav/scratch/seed0").args[0]
     existing = write_rows(planted, cell.output)
     suite.run_suite(cfg, log=lambda _: None)
     assert read_rows([existing]) == planted  # untouched
     rows = read_rows([tmp_path / "results.csv"])
     assert {r["seed"] for r in rows} == {0, 1}
+    assert all(r["return"] == 123.0 for r in rows if r["seed"] == 0)  # the planted cell was used, not recomputed
     assert all(r["return"] != 123.0 for r in rows if r["seed"] == 1)
     assert (tmp_path / "summary.md").exists() and (tmp_path / "curves.png").exists()
 
