@@ -29,6 +29,7 @@ COLUMNS = ("num_skills", "goal_square_range", "disc_range", "disc_min", "disc_ma
            "skills_near_origin", "skills_at_eval_goals")
 
 
+@torch.no_grad()
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--random-seeds", type=int, nargs="*", default=[0, 1, 2])
@@ -73,5 +74,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    torch.set_grad_enabled(False)
     main()

@@ -30,7 +30,7 @@ from umrl.metatest.protocol import (
 )
 from umrl.metatest.results import to_rows, write_rows
 from umrl.modules.policy import make_gaussian_policy
-from umrl.runtime import seed_everything
+from umrl.runtime import seed_everything, write_text_atomic
 from umrl.validation import DEVICES, check_choice, resolve_device
 
 #: Pre-training recipes and the MAML recipe's task proposals.
@@ -329,7 +329,7 @@ def run_cell(spec: CellSpec) -> str:
     rows = to_rows(returns, method=spec.method, env=spec.env, seed=spec.seed, lr_schedule=spec.lr_schedule,
                    **dict(spec.extra))
     output.with_suffix(".json").parent.mkdir(parents=True, exist_ok=True)
-    output.with_suffix(".json").write_text(json.dumps(info, indent=1))
+    write_text_atomic(output.with_suffix(".json"), json.dumps(info, indent=1))
     write_rows(rows, output)  # last: the CSV's existence marks the cell finished
     return str(output)
 
