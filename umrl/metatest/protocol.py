@@ -140,7 +140,7 @@ class TaskAdapter:
                 f"env batch {tuple(env.batch_size)} != {num_tasks} tasks x {config.num_trajectories} trajectories."
             )
         self.policy, self.env, self.num_tasks, self.config = policy, env, num_tasks, config
-        self.functional = FunctionalPolicy(policy)  # loop or vmap over tasks, by per-task batch size
+        self.functional = FunctionalPolicy(policy)  # all tasks batched: one baddbmm per layer
         base = TensorDict.from_module(policy).detach().to(env.device)
         self.params = base.expand(num_tasks).clone()
         leaves = [p.requires_grad_() for p in self.params.values(True, True) if p.is_floating_point()]
