@@ -26,7 +26,7 @@ from torchrl.envs import EnvBase, ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor
 
 from umrl.modules.batched_mlp import BatchedGaussianMLP
-from umrl.objectives.policy_gradient import trajectory_mask
+from umrl.trajectories import trajectory_mask
 
 __all__ = ["FunctionalPolicy", "collect"]
 

@@ -22,6 +22,8 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.objectives.value.functional import vec_generalized_advantage_estimate
 
+from umrl.trajectories import trajectory_mask
+
 __all__ = [
     "baseline_features",
     "compute_advantages",
@@ -30,18 +32,6 @@ __all__ = [
     "trajectory_mask",
     "vpg_loss",
 ]
-
-
-def trajectory_mask(done: torch.Tensor) -> torch.Tensor:
-    """``[..., H]`` bool: step ``t`` belongs to the first episode (no ``done`` strictly before ``t``).
-
-    Args:
-        done: ``("next", "done")`` of shape ``[..., H, 1]``.
-    """
-    if done.shape[-1] != 1:
-        raise ValueError(f"done must have a trailing singleton dim [..., H, 1], got {tuple(done.shape)}.")
-    done = done.squeeze(-1).long()
-    return (done.cumsum(-1) - done) == 0
 
 
 def baseline_features(td: TensorDictBase, *, time_scale: float = 100.0, obs_clip: float = 10.0) -> torch.Tensor:
