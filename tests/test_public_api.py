@@ -10,7 +10,7 @@ import pytest
 UMRL = Path(__file__).resolve().parents[1] / "umrl"
 
 PUBLIC = {
-    "umrl.objectives": {"DIAYNLoss", "MAMLLoss", "VIMELoss", "compute_advantages", "vpg_loss", "trajectory_mask"},
+    "umrl.objectives": {"DIAYNLoss", "DIAYNUpdate", "MAMLLoss", "VIMELoss", "compute_advantages", "vpg_loss", "trajectory_mask"},
     "umrl.transforms": {"SkillTransform", "DiscriminatorReward", "VIMEBonus", "TaskReward"},
     "umrl.modules": {"make_gaussian_policy", "make_discriminator", "BayesianDynamics"},
     "umrl.optim": {"TRPOStep"},

@@ -1,11 +1,12 @@
 """Losses, one algorithm per module, as in ``torchrl.objectives``: ``from umrl.objectives import MAMLLoss``.
 
-- :class:`DIAYNLoss` (:mod:`umrl.objectives.diayn`): SAC on the skill pseudo-reward + the discriminator.
+- :class:`DIAYNLoss` (:mod:`umrl.objectives.diayn`): SAC on the skill pseudo-reward + the discriminator;
+  :class:`DIAYNUpdate` performs one update with it (eager, compiled or in a CUDA graph).
 - :class:`MAMLLoss` (:mod:`umrl.objectives.maml`): MAML with a policy-gradient inner step and TRPO's surrogate.
 - :class:`VIMELoss` (:mod:`umrl.objectives.vime`): the Bayesian dynamics model's negative ELBO.
 - policy-gradient helpers (:mod:`umrl.objectives.policy_gradient`): advantages, baseline, surrogate, returns.
 """
-from umrl.objectives.diayn import DIAYNLoss
+from umrl.objectives.diayn import DIAYNLoss, DIAYNUpdate, make_diayn_optimizers
 from umrl.objectives.maml import MAMLLoss
 from umrl.objectives.policy_gradient import (
     baseline_features,
@@ -19,12 +20,14 @@ from umrl.objectives.vime import VIMELoss
 
 __all__ = [
     "DIAYNLoss",
+    "DIAYNUpdate",
     "MAMLLoss",
     "VIMELoss",
     "baseline_features",
     "compute_advantages",
     "episode_returns",
     "fit_linear_baseline",
+    "make_diayn_optimizers",
     "trajectory_mask",
     "vpg_loss",
 ]
