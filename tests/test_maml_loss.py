@@ -1,4 +1,6 @@
 """MAMLLoss: second-order meta-gradient vs finite differences, first order, reach, zero inner steps, adapt."""
+import re
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -165,3 +167,15 @@ def test_reusing_the_inner_step_graph_gives_the_same_meta_gradient():
     reused = torch.cat([g.reshape(-1) for g in torch.autograd.grad(loss, leaves)])
     torch.testing.assert_close(reused, _grad(loss_module, support, query), rtol=0, atol=0)
     assert reused.abs().sum() > 0
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [({"inner_lr": float("nan")}, "inner_lr: got nan; expected a finite number > 0"),
+     ({"inner_lr": 0.0}, "inner_lr: got 0.0; expected a finite number > 0"),
+     ({"num_inner_steps": 1.5}, "num_inner_steps: got 1.5; expected an integer >= 0")],
+)
+def test_bad_hyperparameters_name_the_argument(kwargs, message):
+    policy = make_gaussian_policy(2, 2, hidden=[4])
+    with pytest.raises((TypeError, ValueError), match=re.escape(message)):
+        MAMLLoss(policy, **kwargs)

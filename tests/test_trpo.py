@@ -1,4 +1,6 @@
 """TRPOStep / conjugate_gradient: CG solves SPD systems; the line search honours the KL bound or restores exactly."""
+import re
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -96,3 +98,16 @@ def test_initial_value_replaces_the_first_closure_call():
     info = trpo(closure, initial=closure())
     assert len(calls) == 1 + info["backtracks"]  # the given value, then only line-search trials
     assert info == reference and torch.equal(_flat(params), stepped)
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [({"max_kl": 0.0}, "max_kl: got 0.0; expected a finite number > 0"),
+     ({"max_kl": float("inf")}, "max_kl: got inf; expected a finite number > 0"),
+     ({"backtrack_ratio": 1.0}, "backtrack_ratio: got 1.0; expected a finite number in (0, 1)"),
+     ({"cg_iters": 0}, "cg_iters: got 0; expected an integer >= 1")],
+)
+def test_bad_hyperparameters_name_the_argument(kwargs, message):
+    params = TensorDict({"w": torch.zeros(2, requires_grad=True)}, [])
+    with pytest.raises((TypeError, ValueError), match=re.escape(message)):
+        TRPOStep(params, **kwargs)

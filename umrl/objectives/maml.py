@@ -29,6 +29,7 @@ from torchrl.objectives import LossModule
 
 from umrl.objectives.policy_gradient import episode_returns, vpg_loss
 from umrl.rollout import FunctionalPolicy
+from umrl.validation import check_int, check_positive
 
 __all__ = ["MAMLLoss", "gaussian_kl"]
 
@@ -94,8 +95,8 @@ class MAMLLoss(LossModule):
         task_loop: bool | None = None,
     ) -> None:
         super().__init__()
-        if inner_lr <= 0 or num_inner_steps < 0:
-            raise ValueError(f"need inner_lr > 0 and num_inner_steps >= 0, got {inner_lr=} and {num_inner_steps=}.")
+        inner_lr = check_positive("inner_lr", inner_lr)
+        num_inner_steps = check_int("num_inner_steps", num_inner_steps, min=0)
         self.policy = policy
         self.functional_policy = FunctionalPolicy(policy, task_loop=task_loop)
         self.inner_lr = inner_lr

@@ -33,6 +33,8 @@ from collections.abc import Callable
 import torch
 from tensordict import TensorDictBase
 
+from umrl.validation import check_float, check_int, check_positive
+
 __all__ = ["TRPOStep", "conjugate_gradient"]
 
 
@@ -109,11 +111,11 @@ class TRPOStep:
         backtrack_ratio: float = 0.8,
         max_backtracks: int = 15,
     ) -> None:
-        if max_kl <= 0 or damping < 0 or cg_iters < 1 or not 0 < backtrack_ratio < 1 or max_backtracks < 1:
-            raise ValueError(
-                "TRPOStep needs max_kl > 0, damping >= 0, cg_iters >= 1, 0 < backtrack_ratio < 1 and "
-                f"max_backtracks >= 1; got {max_kl=}, {damping=}, {cg_iters=}, {backtrack_ratio=}, {max_backtracks=}."
-            )
+        max_kl = check_positive("max_kl", max_kl)
+        damping = check_float("damping", damping, ge=0)
+        cg_iters = check_int("cg_iters", cg_iters, min=1)
+        backtrack_ratio = check_float("backtrack_ratio", backtrack_ratio, gt=0, lt=1)
+        max_backtracks = check_int("max_backtracks", max_backtracks, min=1)
         self.params = params
         self.leaves = list(params.values(include_nested=True, leaves_only=True))
         if not self.leaves or not all(p.requires_grad for p in self.leaves):
