@@ -39,6 +39,7 @@ class ConfigError(ValueError):
     """Every bad key of a config, one ``key: got <value>; expected <what is accepted>`` line each."""
 
     def __init__(self, schema: str, errors: list[str]):
+        errors = list(dict.fromkeys(errors))  # e.g. one reuse path shared by several seeds: said once
         self.errors = errors
         lines = "\n".join(f"  {e}" for e in errors)
         super().__init__(f"invalid config ({schema}, {len(errors)} error{'s' * (len(errors) > 1)}):\n{lines}")
