@@ -115,7 +115,9 @@ def test_existing_cell_is_skipped(tmp_path):
 
 
 def test_killed_suite_completes_on_restart(tmp_path):
+    # cells long enough (~1 s each on a quiet 2-core machine) for the kill to land between the first and the last
     cmd = [sys.executable, str(REPO / "benchmarks" / "suite.py"), f"output_dir={tmp_path}", *TINY,
+           "protocol.num_steps=30", "protocol.horizon=100", "num_tasks=4", "protocol.num_trajectories=10",
            "methods=[scratch]", "seeds=[0,1,2,3]", "launcher.workers=1"]
     env = {**os.environ, "WANDB_MODE": "disabled"}
     first = subprocess.Popen(cmd, cwd=REPO, env=env, start_new_session=True, stdout=subprocess.DEVNULL,
@@ -123,7 +125,7 @@ def test_killed_suite_completes_on_restart(tmp_path):
     deadline = time.time() + 90
     while not (finished := list((tmp_path / "cells").rglob("seed*.csv"))) and time.time() < deadline \
             and first.poll() is None:
-        time.sleep(0.2)
+        time.sleep(0.05)
     os.killpg(first.pid, signal.SIGKILL)  # the suite and its workers die mid-run
     first.wait()
     finished = {c: c.stat().st_mtime_ns for c in (tmp_path / "cells").rglob("seed*.csv")}
