@@ -21,56 +21,27 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import time
 
 import torch
 from tensordict import TensorDict
 from torch.utils.flop_counter import FlopCounterMode
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
-from umrl.envs import make_env
+from umrl.envs import ENV_NAMES, get_env_spec, make_env
 from umrl.modules.discriminator import make_discriminator
 from umrl.modules.sac import make_skill_actor, make_skill_qvalue
 from umrl.objectives.diayn import DIAYNLoss, DIAYNUpdate, make_diayn_optimizers
+from umrl.profiling import device_clock, matmul_rate
+from umrl.validation import resolve_device
 
-SKILLS = {"point_nav": 50, "half_cheetah": 20, "ant": 20}
 HIDDEN = (300, 300)
-
-
-def resolve_device(name: str) -> torch.device:
-    """``cpu``, ``cuda`` or ``auto`` (cuda if available); ``cuda`` without a GPU fails here, naming the choices."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise SystemExit("--device cuda: no CUDA device is available here; use --device cpu or --device auto.")
-    return torch.device(name)
-
-
-def sync(device: torch.device) -> float:
-    """Wait for queued device work, then read the clock."""
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-    return time.perf_counter()
-
-
-def matmul_rate(device: torch.device, m: int, k: int, n: int, repeats: int = 7) -> float:
-    """Median FLOP/s of a float32 [m, k] @ [k, n] ``torch.mm`` on ``device`` (repeated to ~2 GFLOP per timing)."""
-    a, b = torch.randn(m, k, device=device), torch.randn(k, n, device=device)
-    inner = max(1, int(2e9 // (2 * m * k * n)))
-    torch.mm(a, b)
-    times = []
-    for _ in range(repeats):
-        start = sync(device)
-        for _ in range(inner):
-            torch.mm(a, b)
-        times.append((sync(device) - start) / inner)
-    return 2 * m * k * n / statistics.median(times)
 
 
 def random_transitions(env_name: str, obs_dim: int, act_dim: int, size: int) -> TensorDict:
     """``size`` random transitions (batch ``[size]``, on CPU) with the keys DIAYNLoss reads."""
     g = torch.Generator().manual_seed(0)
-    skill = torch.eye(SKILLS[env_name])[torch.randint(SKILLS[env_name], (size,), generator=g)]
+    num_skills = get_env_spec(env_name).num_skills
+    skill = torch.eye(num_skills)[torch.randint(num_skills, (size,), generator=g)]
     data = TensorDict({
         "observation": torch.randn(size, obs_dim, generator=g), "skill": skill,
         "action": torch.rand(size, act_dim, generator=g) * 2 - 1,
@@ -100,7 +71,7 @@ class Variant:
     def __init__(self, name: str, env_name: str, obs_dim: int, act_dim: int, args, device: torch.device):
         self.name, self.device, self.batch_size = name, device, args.batch_size
         torch.manual_seed(args.seed)
-        k = SKILLS[env_name]
+        k = get_env_spec(env_name).num_skills
         loss = DIAYNLoss(make_skill_actor(obs_dim, k, act_dim, hidden=HIDDEN),
                          make_skill_qvalue(obs_dim, k, act_dim, hidden=HIDDEN),
                          make_discriminator(obs_dim, k, hidden=HIDDEN), num_skills=k)
@@ -114,11 +85,11 @@ class Variant:
 
     def run(self, n: int) -> float:
         """Seconds for ``n`` sample + update steps (device work included)."""
-        start = sync(self.device)
+        start = device_clock(self.device)
         for _ in range(n):
             out = self.update(self.buffer.sample())
         out["loss_qvalue"].item()  # one host sync per timing, as a recipe checking its losses once per batch
-        return sync(self.device) - start
+        return device_clock(self.device) - start
 
     def flops(self) -> int:
         """FLOPs of one eager update (forward + backward matmuls)."""
@@ -132,7 +103,7 @@ class Variant:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
-    parser.add_argument("--envs", nargs="+", default=["point_nav", "half_cheetah"], choices=sorted(SKILLS))
+    parser.add_argument("--envs", nargs="+", default=["point_nav", "half_cheetah"], choices=sorted(ENV_NAMES))
     parser.add_argument("--compile", action="store_true", help="also measure torch.compile'd updates")
     parser.add_argument("--cudagraphs", action="store_true", help="also measure CUDA-graph-captured updates")
     parser.add_argument("--batch-size", type=int, default=256)
@@ -143,7 +114,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
-    device = resolve_device(args.device)
+    device = torch.device(resolve_device("--device", args.device))
     if args.cudagraphs and device.type != "cuda":
         raise SystemExit(f"--cudagraphs needs --device cuda (or auto on a GPU machine); got device {device}.")
     if args.threads:

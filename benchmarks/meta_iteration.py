@@ -25,7 +25,6 @@ import argparse
 import contextlib
 import json
 import statistics
-import time
 
 import torch
 from torch.utils.flop_counter import FlopCounterMode
@@ -35,8 +34,10 @@ from umrl.modules.policy import make_gaussian_policy
 from umrl.objectives.maml import MAMLLoss
 from umrl.objectives.policy_gradient import compute_advantages
 from umrl.optim.trpo import TRPOStep
+from umrl.profiling import device_clock, matmul_rate
 from umrl.rollout import collect
 from umrl.runtime import seed_everything
+from umrl.validation import resolve_device
 
 _KEYS = ("env", "tasks", "trajectories", "horizon", "hidden", "inner_lr")
 PRESETS = {name: dict(zip(_KEYS, values)) for name, values in {
@@ -45,34 +46,6 @@ PRESETS = {name: dict(zip(_KEYS, values)) for name, values in {
     "half_cheetah": ("half_cheetah", 20, 40, 100, (300, 300), 0.1),
 }.items()}
 TASK_LOOP = {"batched": None, "loop": True, "vmap": False}
-
-
-def resolve_device(name: str) -> torch.device:
-    """``cpu``, ``cuda`` or ``auto`` (cuda if available); ``cuda`` without a GPU fails here, naming the choices."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise SystemExit("--device cuda: no CUDA device is available here; use --device cpu or --device auto.")
-    return torch.device(name)
-
-
-def sync(device: torch.device) -> float:
-    """Wait for queued device work, then read the clock."""
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-    return time.perf_counter()
-
-
-def matmul_rate(device: torch.device, size: int, repeats: int = 5) -> float:
-    """Median FLOP/s of a ``size``² float32 ``torch.mm`` on ``device`` at the current thread count."""
-    a, b = (torch.randn(size, size, device=device) for _ in range(2))
-    torch.mm(a, b)
-    times = []
-    for _ in range(repeats):
-        start = sync(device)
-        torch.mm(a, b)
-        times.append(sync(device) - start)
-    return 2 * size**3 / statistics.median(times)
 
 
 class Variant:
@@ -101,17 +74,17 @@ class Variant:
         torch.set_rng_state(self.rng_state)  # variants share the global RNG: each continues its own stream
         tasks = self.family.sample(self.args.tasks, self.generator)
         self.env.transform[-1].set_tasks(tasks.repeat_interleave(self.args.trajectories, 0).to(self.device))
-        start = sync(self.device)
+        start = device_clock(self.device)
         support = self._collect()
-        inner_start = sync(self.device)
+        inner_start = device_clock(self.device)
         with torch.enable_grad(), flops or contextlib.nullcontext():
             adapted = self.loss.adapt(support)
-        inner_s = sync(self.device) - inner_start
+        inner_s = device_clock(self.device) - inner_start
         query = self._collect(adapted.detach())
-        collected = sync(self.device)
+        collected = device_clock(self.device)
         with flops or contextlib.nullcontext():
             info = self.step(support, query, adapted)
-        learned = sync(self.device)
+        learned = device_clock(self.device)
         self.rng_state = torch.get_rng_state()
         return {**info, "collect_s": collected - start - inner_s, "learn_s": learned - collected + inner_s}
 
@@ -140,7 +113,7 @@ def main() -> None:
     for key, value in PRESETS[args.preset].items():
         if getattr(args, key, None) is None:
             setattr(args, key, value)
-    device = resolve_device(args.device)
+    device = torch.device(resolve_device("--device", args.device))
     torch.set_num_threads(args.threads)
 
     variants = {name: Variant(args, device, TASK_LOOP[name]) for name in args.task_loop}
@@ -154,7 +127,8 @@ def main() -> None:
     rows = {name: {"collect_s": [], "learn_s": []} for name in variants}
     rates = []
     for _ in range(args.repeats):
-        rates.append(matmul_rate(device, 4096 if device.type == "cuda" else 2048))
+        size = 4096 if device.type == "cuda" else 2048
+        rates.append(matmul_rate(device, size, size, size))
         for name, variant in variants.items():
             info = variant.iteration()
             rows[name]["collect_s"].append(info["collect_s"])
