@@ -1,5 +1,8 @@
 """MAML meta-training on proposed tasks: UML-DIAYN, UML-random, or the oracle task family.
 
+``proposal=random_arena`` is an ablation, not the paper's method: UML-random meta-trained with point_nav's position
+clipped to [-a, a]² (``env.arena``, 1.0 when null); see :mod:`umrl.proposals`.
+
     python recipes/maml.py proposal=oracle                                   # hand-designed goals (upper bound)
     python recipes/maml.py proposal=random                                   # frozen random discriminator
     python recipes/maml.py proposal=diayn diayn_checkpoint=outputs/diayn/point_nav/seed0
@@ -116,6 +119,7 @@ def build(cfg: DictConfig):
         cfg.proposal, cfg.env.name, num_tasks=cfg.meta_batch_size, trajectories_per_task=cfg.trajectories_per_task,
         seed=cfg.seed, horizon=cfg.env.horizon, num_skills=cfg.num_skills,
         diayn_checkpoint=cfg.diayn_checkpoint if cfg.proposal == "diayn" else None, device=device,
+        arena=cfg.env.arena,
     )
     env = proposal.env
     obs_dim, act_dim = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]

@@ -23,7 +23,7 @@ def test_registry_records_are_typed():
     assert METHODS["diayn_init"].pretraining == Pretraining("diayn") and METHODS["scratch"].pretraining is None
     assert {m.name: m.optimizer for m in METHODS.values()} == {
         "uml_diayn": "sgd", "uml_random": "sgd", "oracle": "sgd",
-        "vime_init": "adam", "diayn_init": "adam", "scratch": "adam"}
+        "vime_init": "adam", "diayn_init": "adam", "scratch": "adam", "uml_random_arena": "sgd"}
     with pytest.raises(ValueError, match="unknown method 'maml'.*uml_diayn"):
         get_method("maml")
     with pytest.raises(ValueError, match="proposal.*'maml'.*None"):

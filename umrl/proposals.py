@@ -9,6 +9,13 @@ A proposal owns a batched env of ``T × N`` copies (task-major: copy ``t * N + n
   discriminator (``umrl.checkpoints.load_discriminator``); the meta-batch is every skill (or a random subset
   of ``num_tasks`` skills each meta-iteration if fewer tasks are asked for).
 * ``random`` — UML-random: the same reward from a seeded, randomly initialised, frozen discriminator.
+* ``random_arena`` — an **ablation, not the paper's method** (display "UML-random (bounded arena, ablation)"):
+  ``random`` meta-trained with point_nav's position clipped to [-a, a]² (``arena``, default :data:`RANDOM_ARENA`).
+  A ReLU discriminator with zero biases is positively homogeneous, so each random task is "go as far as possible
+  in direction z"; in the arena every task's best reachable point lies within ~a of the evaluation goals. The
+  meta-test env is never bounded.
+
+Any proposal takes ``arena`` (the env option of :class:`~umrl.envs.point_nav.PointNavEnv`) for meta-training.
 
 Skills are pinned per env copy with :meth:`~umrl.transforms.skill.SkillTransform.pin` (the policy never sees them:
 it must infer its task from rewards), so ``"skill"`` ``[B, K]`` appears in rollouts for inspection only.
@@ -31,9 +38,11 @@ from umrl.modules.discriminator import make_discriminator
 from umrl.transforms.discriminator_reward import DiscriminatorReward
 from umrl.transforms.skill import SkillTransform
 
-PROPOSALS = ("diayn", "random", "oracle")
+PROPOSALS = ("diayn", "random", "oracle", "random_arena")
+RANDOM_ARENA = 1.0
+"""Half-width of the ``random_arena`` ablation's arena when ``arena`` is not given."""
 
-__all__ = ["PROPOSALS", "TaskProposal", "make_proposal"]
+__all__ = ["PROPOSALS", "RANDOM_ARENA", "TaskProposal", "make_proposal"]
 
 
 @dataclass
@@ -41,7 +50,7 @@ class TaskProposal:
     """A meta-training task source.
 
     Attributes:
-        name: ``"diayn"``, ``"random"`` or ``"oracle"``.
+        name: one of :data:`PROPOSALS`.
         env: batched env with ``batch_size == [num_tasks * trajectories_per_task]``.
         num_tasks: ``T``, tasks per meta-iteration.
         trajectories_per_task: ``N``.
@@ -77,8 +86,8 @@ class TaskProposal:
 
 
 def _skill_env(env_name: str, discriminator, num_skills: int, batch: int, seed: int, horizon: int,
-               device: torch.device) -> tuple[TransformedEnv, SkillTransform]:
-    env = make_env(env_name, batch, seed=seed, horizon=horizon, device=device)
+               device: torch.device, options: dict) -> tuple[TransformedEnv, SkillTransform]:
+    env = make_env(env_name, batch, seed=seed, horizon=horizon, device=device, **options)
     obs_dim = env.observation_spec["observation"].shape[-1]
     in_features = next(p for p in discriminator.parameters()).shape[-1]
     if in_features != obs_dim:
@@ -104,6 +113,7 @@ def make_proposal(
     diayn_checkpoint: str | os.PathLike | None = None,
     discriminator_hidden: tuple[int, ...] = (300, 300),
     device: torch.device | str = "cpu",
+    arena: float | None = None,
 ) -> TaskProposal:
     """Build a :class:`TaskProposal`.
 
@@ -123,6 +133,8 @@ def make_proposal(
         discriminator_hidden: widths of the random discriminator.
         device: device of the env's tensors and of the discriminator (MuJoCo physics stays on CPU threads, its
             outputs move once per step); tasks are drawn on the CPU (the same tasks on every device).
+        arena: clip point_nav's position to [-arena, arena]² (> 0); ``None``: unbounded, or :data:`RANDOM_ARENA`
+            for ``random_arena``. Other envs refuse it.
     """
     if name not in PROPOSALS:
         raise ValueError(f"unknown proposal {name!r}; valid choices: {list(PROPOSALS)}.")
@@ -130,10 +142,14 @@ def make_proposal(
         raise ValueError(f"need num_tasks >= 1 and trajectories_per_task >= 1, got {num_tasks} and {trajectories_per_task}.")
     n = trajectories_per_task
     spec = get_env_spec(env_name)
+    if name == "random_arena" and arena is None:
+        arena = RANDOM_ARENA
+    options = {} if arena is None else {"arena": arena}
     if name == "oracle":
         num_tasks = num_tasks or spec.num_skills
         tasks = spec.task_family.sample(num_tasks, torch.Generator().manual_seed(seed))
-        env = make_task_env(env_name, tasks.repeat_interleave(n, 0), seed=seed, horizon=horizon, device=device)
+        env = make_task_env(env_name, tasks.repeat_interleave(n, 0), seed=seed, horizon=horizon, device=device,
+                            **options)
         return TaskProposal(name, env, num_tasks, n, task_reward=env.transform[-1])
     if name == "diayn":
         if diayn_checkpoint is None:
@@ -149,5 +165,6 @@ def make_proposal(
     num_tasks = num_tasks or num_skills
     if num_tasks > num_skills:
         raise ValueError(f"num_tasks={num_tasks} exceeds the {num_skills} skills: one skill per task.")
-    env, skills = _skill_env(env_name, discriminator, num_skills, num_tasks * n, seed, horizon, torch.device(device))
+    env, skills = _skill_env(env_name, discriminator, num_skills, num_tasks * n, seed, horizon, torch.device(device),
+                             options)
     return TaskProposal(name, env, num_tasks, n, num_skills=num_skills, skills=skills)

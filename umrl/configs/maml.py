@@ -1,4 +1,5 @@
-"""Schema of ``recipes/config/maml.yaml`` (MAML meta-training: UML-DIAYN, UML-random, oracle)."""
+"""Schema of ``recipes/config/maml.yaml`` (MAML meta-training: UML-DIAYN, UML-random, oracle, and the
+``random_arena`` ablation)."""
 # ruff: noqa: RUF009  (the field helpers of umrl.configs.validate return dataclasses.field(...) objects)
 from __future__ import annotations
 
@@ -11,6 +12,13 @@ from umrl.validation import InvalidValue, check_path_exists
 
 HVP_MODES = ("gauss_newton", "exact")
 """``trpo.hvp``: ``gauss_newton`` (J^T F J through the inner step) or ``exact`` (the KL's Hessian)."""
+
+
+@dataclass
+class MAMLEnvConfig(EnvConfig):
+    """:class:`EnvConfig` plus ``arena`` (null or > 0): point_nav's position bound during meta-training."""
+
+    arena: float | None = number(gt=0)
 
 
 @dataclass
@@ -45,7 +53,7 @@ class MAMLConfig:
     seed: int = integer(min=0)
     device: str = device()
     num_threads: int = integer(min=1)
-    env: EnvConfig = group(EnvConfig)
+    env: MAMLEnvConfig = group(MAMLEnvConfig)
     proposal: str = choice(PROPOSALS)
     diayn_checkpoint: str = string()
     num_skills: int | None = integer(min=2)

@@ -7,6 +7,8 @@ transform is a ``StepCounter`` enforcing the horizon (``"step_count"`` ``[B, 1]`
 """
 from __future__ import annotations
 
+import inspect
+
 import torch
 from torchrl.envs import StepCounter, TransformedEnv
 
@@ -27,6 +29,7 @@ def make_env(
     device: torch.device | str = "cpu",
     horizon: int = 100,
     backend: str = "default",
+    **options,
 ) -> TransformedEnv:
     """Build the reward-free CMP ``name`` with ``num_envs`` copies stepped as one batch.
 
@@ -40,12 +43,18 @@ def make_env(
         horizon: episode length enforced by ``StepCounter`` (> 0).
         backend: MuJoCo simulation path, ``"batched"`` (default: our batched MjData env) or ``"gym"`` (TorchRL's
             wrapper over a gymnasium sync vector env, the reference). Ignored for point_nav.
+        **options: options only some envs take, passed to ``EnvSpec.make`` (point_nav: ``arena``, see
+            :class:`~umrl.envs.point_nav.PointNavEnv`); one the env does not take is refused.
     """
     spec = get_env_spec(name)
     num_envs = check_int("num_envs", num_envs, min=1)
     horizon = check_int("horizon", horizon, min=1)
     backend = check_choice("backend", backend, BACKENDS)
-    base = spec.make(num_envs, seed=seed, device=device, backend=backend)
+    accepted = [p for p in inspect.signature(spec.make).parameters if p not in ("num_envs", "seed", "device", "backend")]
+    unknown = sorted(set(options) - set(accepted))
+    if unknown:
+        raise ValueError(f"make_env({name!r}): got env options {unknown}; {name} accepts {accepted or 'none'}.")
+    base = spec.make(num_envs, seed=seed, device=device, backend=backend, **options)
     if isinstance(base, TransformedEnv):  # the gym backend already carries transforms: extend them, don't nest
         base.append_transform(StepCounter(max_steps=horizon))
         env = base

@@ -25,9 +25,10 @@ from umrl.envs.tasks import (
 
 
 def make_point_nav(num_envs: int, *, seed: int | None = None, device: torch.device | str = "cpu",
-                   backend: str = "default") -> EnvBase:
-    """:class:`~umrl.envs.point_nav.PointNavEnv` (deterministic: ``seed`` and the MuJoCo ``backend`` are unused)."""
-    return PointNavEnv(num_envs, device=device)
+                   backend: str = "default", arena: float | None = None) -> EnvBase:
+    """:class:`~umrl.envs.point_nav.PointNavEnv` (deterministic: ``seed`` and the MuJoCo ``backend`` are unused;
+    ``arena``: the optional position bound)."""
+    return PointNavEnv(num_envs, device=device, arena=arena)
 
 
 def mujoco_maker(name: str):

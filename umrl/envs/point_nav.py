@@ -3,7 +3,8 @@
 All ``B`` copies step in one tensor operation; there is no Python loop over copies.
 
 Semantics (PROTOCOL.md): the point starts at (0, 0); the action is clipped to [-1, 1]² and scaled by 0.1, so a step
-moves at most 0.1 per axis; the position is unbounded. The CMP has no reward: ``("next", "reward")`` is zero and
+moves at most 0.1 per axis; the position is unbounded unless ``arena=a`` clips it to [-a, a]² after every step (an
+ablation used only in meta-training, see :mod:`umrl.proposals`: ``random_arena``). The CMP has no reward: ``("next", "reward")`` is zero and
 task rewards are written by :class:`~umrl.transforms.task_reward.TaskReward`. The horizon (100) is a
 ``StepCounter`` added by :func:`umrl.envs.make_env`.
 
@@ -17,6 +18,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from umrl.validation import check_float
+
 ACTION_SCALE = 0.1
 
 
@@ -28,13 +31,16 @@ class PointNavEnv(EnvBase):
 
     Keyword Args:
         device: torch device of every tensor.
+        arena: half-width ``a`` > 0 of the square [-a, a]² the position is clipped to after each step; ``None``
+            (default): unbounded.
     """
 
     batch_locked = True
 
-    def __init__(self, num_envs: int, *, device: torch.device | str = "cpu"):
+    def __init__(self, num_envs: int, *, device: torch.device | str = "cpu", arena: float | None = None):
         if num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs}.")
+        self.arena = None if arena is None else check_float("arena", arena, gt=0)
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
         shape = (num_envs,)
         self.observation_spec = Composite(
@@ -71,6 +77,8 @@ class PointNavEnv(EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action")
         self._position = self._position + ACTION_SCALE * action.clamp(-1.0, 1.0)
+        if self.arena is not None:
+            self._position = self._position.clamp(-self.arena, self.arena)
         return self._state(reward=torch.zeros(self.batch_size + (1,), device=self.device))
 
     def _set_seed(self, seed: int | None) -> None:
