@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from umrl.configs.validate import boolean, choice, int_list, integer, number, string
+from umrl.configs.validate import boolean, choice, device, group, int_list, integer, number, string
 from umrl.envs import BACKENDS, ENV_NAMES
 from umrl.runtime import LOGGER_BACKENDS
 
@@ -42,6 +42,19 @@ class RunLoggerConfig(LoggerConfig):
     """:class:`LoggerConfig` plus the run's ``exp_name``."""
 
     exp_name: str = string()
+
+
+@dataclass
+class RunConfig:
+    """The keys every recipe has: ``seed`` (>= 0), ``device`` (cpu | cuda | auto), the run's ``logger``,
+    ``output_dir``, ``resume`` and ``progress`` (the tqdm bar). Each recipe's schema extends it."""
+
+    seed: int = integer(min=0)
+    device: str = device()
+    logger: RunLoggerConfig = group(RunLoggerConfig)
+    output_dir: str = string()
+    resume: bool = boolean()
+    progress: bool = boolean()
 
 
 @dataclass

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from umrl.configs.common import BatchedEnvConfig, CheckpointConfig, RunLoggerConfig
-from umrl.configs.validate import boolean, device, group, int_list, integer, number, string
+from umrl.configs.common import BatchedEnvConfig, CheckpointConfig, RunConfig
+from umrl.configs.validate import boolean, group, int_list, integer, number
 from umrl.validation import InvalidValue
 
 
@@ -48,11 +48,9 @@ class EvalConfig:
 
 
 @dataclass
-class DIAYNConfig:
-    """Every key of ``recipes/config/diayn.yaml``; the yaml's comments say what each does."""
+class DIAYNConfig(RunConfig):
+    """Every key of ``recipes/config/diayn.yaml`` (:class:`RunConfig`'s and these); the yaml's comments say what each does."""
 
-    seed: int = integer(min=0)
-    device: str = device()
     num_threads: int = integer(min=1)
     env: BatchedEnvConfig = group(BatchedEnvConfig)
     num_skills: int | None = integer(min=2)
@@ -62,10 +60,6 @@ class DIAYNConfig:
     optim: OptimConfig = group(OptimConfig)
     eval: EvalConfig = group(EvalConfig)
     checkpoint: CheckpointConfig = group(CheckpointConfig)
-    logger: RunLoggerConfig = group(RunLoggerConfig)
-    output_dir: str = string()
-    resume: bool = boolean()
-    progress: bool = boolean()
 
     @staticmethod
     def cross_check(cfg: dict) -> list[str]:

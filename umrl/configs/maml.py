@@ -5,8 +5,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from umrl.configs.common import CheckpointConfig, EnvConfig, PolicyConfig, RunLoggerConfig, TRPOConfig
-from umrl.configs.validate import boolean, choice, device, group, integer, number, string
+from umrl.configs.common import (
+    CheckpointConfig,
+    EnvConfig,
+    PolicyConfig,
+    RunConfig,
+    TRPOConfig,
+)
+from umrl.configs.validate import boolean, choice, group, integer, number, string
 from umrl.proposals import PROPOSALS
 from umrl.validation import InvalidValue, check_path_exists
 
@@ -47,11 +53,9 @@ class MetaTRPOConfig(TRPOConfig):
 
 
 @dataclass
-class MAMLConfig:
-    """Every key of ``recipes/config/maml.yaml``; the yaml's comments say what each does."""
+class MAMLConfig(RunConfig):
+    """Every key of ``recipes/config/maml.yaml`` (:class:`RunConfig`'s and these); the yaml's comments say what each does."""
 
-    seed: int = integer(min=0)
-    device: str = device()
     num_threads: int = integer(min=1)
     env: MAMLEnvConfig = group(MAMLEnvConfig)
     proposal: str = choice(PROPOSALS)
@@ -65,10 +69,6 @@ class MAMLConfig:
     advantage: AdvantageConfig = group(AdvantageConfig)
     trpo: MetaTRPOConfig = group(MetaTRPOConfig)
     checkpoint: CheckpointConfig = group(CheckpointConfig)
-    logger: RunLoggerConfig = group(RunLoggerConfig)
-    output_dir: str = string()
-    resume: bool = boolean()
-    progress: bool = boolean()
 
     @staticmethod
     def cross_check(cfg: dict) -> list[str]:

@@ -4,8 +4,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from umrl.configs.common import BatchedEnvConfig, CheckpointConfig, PolicyConfig, RunLoggerConfig, TRPOConfig
-from umrl.configs.validate import boolean, device, group, int_list, integer, number, string
+from umrl.configs.common import (
+    BatchedEnvConfig,
+    CheckpointConfig,
+    PolicyConfig,
+    RunConfig,
+    TRPOConfig,
+)
+from umrl.configs.validate import boolean, group, int_list, integer, number
 
 
 @dataclass
@@ -54,11 +60,9 @@ class VIMECheckpointConfig(CheckpointConfig):
 
 
 @dataclass
-class VIMEConfig:
-    """Every key of ``recipes/config/vime.yaml``; the yaml's comments say what each does."""
+class VIMEConfig(RunConfig):
+    """Every key of ``recipes/config/vime.yaml`` (:class:`RunConfig`'s and these); the yaml's comments say what each does."""
 
-    seed: int = integer(min=0)
-    device: str = device()
     iterations: int = integer(min=1)
     env: BatchedEnvConfig = group(BatchedEnvConfig)
     policy: PolicyConfig = group(PolicyConfig)
@@ -67,7 +71,3 @@ class VIMEConfig:
     trpo: VIMETRPOConfig = group(VIMETRPOConfig)
     coverage: CoverageConfig = group(CoverageConfig)
     checkpoint: VIMECheckpointConfig = group(VIMECheckpointConfig)
-    logger: RunLoggerConfig = group(RunLoggerConfig)
-    output_dir: str = string()
-    resume: bool = boolean()
-    progress: bool = boolean()
