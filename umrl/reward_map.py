@@ -23,6 +23,8 @@ import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 
+from umrl.runtime import save_figure
+
 __all__ = ["RewardMap", "plot_rays", "plot_territories", "pseudo_rewards", "reward_map", "reward_map_stats"]
 
 
@@ -189,12 +191,7 @@ def plot_territories(rmap: RewardMap, path: str | Path, *, title: str = "") -> P
                       f"{rmap.inner_territory.unique().numel()} of {rmap.num_skills} skills win here")
     axes[1].legend(loc="upper right")
     fig.suptitle(title)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)
 
 
 def plot_rays(rmap: RewardMap, path: str | Path, *, skills: int = 4, rays: int = 8, title: str = "") -> Path:
@@ -218,9 +215,4 @@ def plot_rays(rmap: RewardMap, path: str | Path, *, skills: int = 4, rays: int =
     axes[0][0].set_ylabel("log D(z|s) - log p(z)")
     axes[0][-1].legend(fontsize=7, title="ray angle")
     fig.suptitle(title)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)

@@ -166,6 +166,18 @@ def log_image(logger: Logger | None, name: str, path: str | os.PathLike, step: i
     experiment.log({name: wandb.Image(str(path)), "step": step})
 
 
+def save_figure(fig: Any, path: str | os.PathLike, *, dpi: int = 120) -> Path:
+    """Lay out a matplotlib ``fig``, write it to ``path`` (PNG; parent folders created) and close it."""
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    import matplotlib.pyplot as plt  # the callers chose the backend
+
+    plt.close(fig)
+    return path
+
+
 def check_finite(losses: Mapping[str, torch.Tensor], where: str) -> None:
     """Fail fast with the names of the non-finite entries of ``losses``."""
     bad = [k for k, v in losses.items() if torch.is_tensor(v) and not torch.isfinite(v).all()]

@@ -27,6 +27,7 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from umrl.envs import get_env_spec
+from umrl.runtime import save_figure
 
 __all__ = [
     "convex_hull_area",
@@ -267,8 +268,4 @@ def plot_coverage(
         ax.set_ylabel("count")
     ax.legend(loc="best", fontsize=8)
     ax.set_title(title)
-    fig.tight_layout()
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return str(path)
+    return str(save_figure(fig, path))

@@ -18,6 +18,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from umrl.runtime import save_figure
+
 #: One colour per method, stable across figures (methods outside this map get matplotlib's cycle).
 METHOD_COLORS = {
     "uml_diayn": "tab:blue",
@@ -57,12 +59,7 @@ def _panels(curves: Mapping[str, Mapping[str, Curve]], path: str | os.PathLike, 
         ax.grid(alpha=0.3)
     axes[0][0].legend(fontsize="small")
     fig.suptitle(title)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def plot_adaptation_curves(curves: Mapping[str, Mapping[str, Curve]], path: str | os.PathLike, *,
