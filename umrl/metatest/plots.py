@@ -28,6 +28,7 @@ METHOD_COLORS = {
     "vime_init": "tab:purple",
     "diayn_init": "tab:brown",
     "scratch": "tab:gray",
+    "uml_random_arena": "tab:red",  # the bounded-arena ablation of UML-random
 }
 
 
