@@ -1,6 +1,7 @@
 """Helpers for tests of the Hydra scripts in benchmarks/: import a script, compose its config (recipes are a package:
 ``from recipes import compose``)."""
 import importlib.util
+import sys
 from pathlib import Path
 
 from hydra import compose
@@ -12,12 +13,15 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def load_script(relative_path: str):
-    """Import ``REPO/relative_path`` (e.g. ``"recipes/diayn.py"``) as a module."""
+    """Import ``REPO/relative_path`` (e.g. ``"benchmarks/suite.py"``) as module ``umrl_script_<stem>``, once per
+    session: it is registered in ``sys.modules`` (its dataclasses resolve their annotations there) and reused."""
     path = REPO / relative_path
-    spec = importlib.util.spec_from_file_location(f"umrl_script_{path.stem}", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    name = f"umrl_script_{path.stem}"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, path)
+        sys.modules[name] = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(sys.modules[name])
+    return sys.modules[name]
 
 
 def compose_config(directory: str, name: str, overrides) -> DictConfig:

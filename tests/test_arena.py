@@ -1,13 +1,10 @@
 """The bounded-arena ablation of UML-random (issue 14): point_nav's ``arena`` option, the ``random_arena`` proposal,
 the ``env.arena`` config key and the ``uml_random_arena`` method end to end in a tiny suite."""
-import importlib.util
 import math
-import sys
-from pathlib import Path
 
 import pytest
 import torch
-from script_loading import compose_config
+from script_loading import compose_config, load_script
 
 from recipes import compose
 from umrl.checkpoints import load_maml_checkpoint
@@ -18,12 +15,7 @@ from umrl.envs.point_nav import ACTION_SCALE, PointNavEnv
 from umrl.metatest import METHODS, read_rows
 from umrl.proposals import RANDOM_ARENA, make_proposal
 
-REPO = Path(__file__).resolve().parents[1]
-if "umrl_suite" not in sys.modules:
-    _spec = importlib.util.spec_from_file_location("umrl_suite", REPO / "benchmarks" / "suite.py")
-    sys.modules["umrl_suite"] = importlib.util.module_from_spec(_spec)
-    _spec.loader.exec_module(sys.modules["umrl_suite"])
-suite = sys.modules["umrl_suite"]
+suite = load_script("benchmarks/suite.py")
 
 
 def _positions(env, actions: torch.Tensor) -> torch.Tensor:

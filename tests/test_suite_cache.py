@@ -1,25 +1,18 @@
 """The suite's cache keyed by config and code, its marker window, atomic state, validation before work and
 printed failures (benchmarks/suite.py, umrl/metatest/cache.py)."""
-import importlib.util
 import os
-import sys
 import time
 from pathlib import Path
 
 import pytest
-from script_loading import compose_config
+from script_loading import compose_config, load_script
 
 import recipes
 from umrl.configs import ConfigError
 from umrl.metatest import CellSpec, read_rows
 from umrl.metatest.cache import DONE_MARKER, config_key, remove_stale_tmp, source_version, write_json_atomic
 
-REPO = Path(__file__).resolve().parents[1]
-if "umrl_suite" not in sys.modules:
-    _spec = importlib.util.spec_from_file_location("umrl_suite", REPO / "benchmarks" / "suite.py")
-    sys.modules["umrl_suite"] = importlib.util.module_from_spec(_spec)
-    _spec.loader.exec_module(sys.modules["umrl_suite"])
-suite = sys.modules["umrl_suite"]
+suite = load_script("benchmarks/suite.py")
 
 TINY = ["num_tasks=2", "protocol.num_steps=1", "protocol.num_trajectories=2", "protocol.horizon=10",
         "report.steps=[0]", "logger.backend=none", "ablation.enabled=false", "launcher.threads=1",
