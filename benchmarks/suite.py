@@ -453,10 +453,10 @@ def _reuse_dir(cfg: DictConfig, run: Pretraining, env: str, seed: int) -> Path |
 
 def _suite_overrides(cfg: DictConfig, run: Pretraining, env: str, seed: int, group: str,
                      runs: Mapping[tuple[str, str, int], PretrainRun]) -> list[str]:
-    """What the suite sets in a recipe's config: env, seed, device, logging, MAML's proposal and DIAYN run; then the
-    user's ``pretrain.<recipe>.overrides`` (which win)."""
-    values = {"env.name": env, "seed": seed, "device": cfg.device, "logger.backend": cfg.logger.backend,
-              "logger.group": group, "progress": False}
+    """What the suite sets in a recipe's config: env, seed, device, torch threads (``launcher.threads``), logging,
+    MAML's proposal and DIAYN run; then the user's ``pretrain.<recipe>.overrides`` (which win)."""
+    values = {"env.name": env, "seed": seed, "device": cfg.device, "num_threads": cfg.launcher.threads,
+              "logger.backend": cfg.logger.backend, "logger.group": group, "progress": False}
     if run.recipe == "maml":
         values.update({"proposal": run.proposal, "checkpoint.keep_all": True})
         for needed in run.requires:
@@ -631,8 +631,8 @@ def report(cfg: DictConfig, group: str, timings: Mapping[str, float], cells: Seq
         raise RuntimeError(f"no finished cells under {out / 'cells'}: nothing to report (see {out / 'logs'}).")
     write_rows(rows, out / "results.csv")
     table, records = summary_table(rows, steps=list(cfg.report.steps), methods=list(cfg.methods))
-    plot_adaptation_curves(curves_from_rows(rows, methods=list(cfg.methods)), out / "curves.png",
-                           styles=arm_styles(rows))
+    curves = curves_from_rows(rows, methods=list(cfg.methods))
+    plot_adaptation_curves(curves, out / "curves.png", styles=arm_styles(rows))
     settings = OmegaConf.to_yaml(OmegaConf.create({k: to_container(cfg)[k] for k in (
         "envs", "methods", "seeds", "pretrain_seeds", "num_tasks", "protocol", "adam_lr", "sgd_lr", "sweep",
         "device")}))
@@ -648,10 +648,10 @@ def report(cfg: DictConfig, group: str, timings: Mapping[str, float], cells: Seq
     ablation_rows = read_rows([Path(p) for p in ablation if Path(p).exists()])
     ablation_md = None
     if ablation_rows:
-        curves = ablation_curves(ablation_rows, metric="auc")
-        plot_ablation(curves, out / "ablation.png", metric=f"meta-test AUC (k = 0..{cfg.ablation.num_steps})",
-                      styles=arm_styles(ablation_rows))
-        ablation_md = ablation_table(curves)
+        along_training = ablation_curves(ablation_rows, metric="auc")
+        plot_ablation(along_training, out / "ablation.png",
+                      metric=f"meta-test AUC (k = 0..{cfg.ablation.num_steps})", styles=arm_styles(ablation_rows))
+        ablation_md = ablation_table(along_training)
         write_text_atomic(out / "ablation.md", ablation_md)
     record = provenance(command=shlex.join([Path(sys.executable).name, *sys.argv]), wall_seconds=wall_seconds,
                         job_threads=int(cfg.launcher.threads))
@@ -659,15 +659,14 @@ def report(cfg: DictConfig, group: str, timings: Mapping[str, float], cells: Seq
         list(cfg.seeds), pretrain_seeds(cfg)), lr_lines=lr_lines, time_lines=time_lines, settings_yaml=settings,
         provenance=record, ablation=ablation_md)
     write_text_atomic(out / "summary.md", markdown)
-    _log_to_wandb(cfg, group, rows, records, out)
+    _log_to_wandb(cfg, group, curves, records, out)
     return markdown
 
 
-def _log_to_wandb(cfg: DictConfig, group: str, rows, records, out: Path) -> None:
-    """One run per (env, arm) with the mean curve and summary metrics, plus a report run with the figures; wandb
-    runs land in ``out/wandb`` (or ``$WANDB_DIR/wandb``)."""
+def _log_to_wandb(cfg: DictConfig, group: str, curves, records, out: Path) -> None:
+    """One run per (env, arm) of ``curves`` (the report's) with the mean curve and summary metrics, plus a report
+    run with the figures; wandb runs land in ``out/wandb`` (or ``$WANDB_DIR/wandb``)."""
     logger_cfg = {**to_container(cfg.logger), "group": group}
-    curves = curves_from_rows(rows)
     for env, methods in curves.items():
         for method, curve in methods.items():
             logger = make_logger(logger_cfg, exp_name=f"{method}_{env}".replace(" ", "_"),

@@ -109,6 +109,7 @@ def train(cfg: DictConfig) -> dict:
     finishes bit-identical to an uninterrupted run; a config that differs from the checkpoint's beyond
     ``umrl.configs.RESUME_ALLOW`` is refused."""
     cfg = validate(cfg, VIMEConfig)
+    torch.set_num_threads(cfg.num_threads)
     seed_everything(cfg.seed)
     device = torch.device(resolve_device("device", cfg.device))  # networks, replay storage, env outputs
     out_dir = Path(cfg.output_dir)

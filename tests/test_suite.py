@@ -1,6 +1,5 @@
 """Benchmark suite: planning, skipping finished cells, resuming a killed run, the Ray launcher (cache keys,
 validation and failures: test_suite_cache.py)."""
-import importlib.util
 import os
 import signal
 import subprocess
@@ -9,16 +8,15 @@ import time
 from pathlib import Path
 
 import pytest
-from script_loading import compose_config
+from script_loading import compose_config, load_script
 
+import recipes
 from umrl.configs import ConfigError, validate
 from umrl.configs.suite import SuiteConfig
 from umrl.metatest import read_rows, write_rows
 
 REPO = Path(__file__).resolve().parents[1]
-_spec = importlib.util.spec_from_file_location("umrl_suite", REPO / "benchmarks" / "suite.py")
-suite = sys.modules["umrl_suite"] = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(suite)
+suite = load_script("benchmarks/suite.py")
 
 TINY = ["num_tasks=2", "protocol.num_steps=1", "protocol.num_trajectories=2", "protocol.horizon=10", "report.steps=[0]",
         "logger.backend=none", "ablation.enabled=false", "launcher.threads=1"]
@@ -50,6 +48,14 @@ def test_plan_dependencies_and_shared_pretraining(tmp_path):
     (diayn_dir / "checkpoints").mkdir(parents=True)
     (diayn_dir / "checkpoints" / "step_10.pt").write_bytes(b"")
     assert "resume=true" in suite.plan_pretraining(cfg, "g", "code")["diayn", "point_nav", 0].overrides
+
+
+def test_every_pretraining_run_gets_the_launchers_thread_count(tmp_path):
+    cfg = _cfg(tmp_path, "seeds=[0]", "methods=[uml_diayn,vime_init]", "launcher.threads=3")
+    runs = suite.plan_pretraining(cfg, "g", "code")
+    assert {kind for kind, _, _ in runs} == {"diayn", "maml_diayn", "vime"}
+    for run in runs.values():
+        assert recipes.compose(run.run.recipe, list(run.overrides)).num_threads == 3
 
 
 def test_independent_pretraining_per_seed_and_both_sgd_schedules(tmp_path):

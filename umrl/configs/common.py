@@ -46,11 +46,13 @@ class RunLoggerConfig(LoggerConfig):
 
 @dataclass
 class RunConfig:
-    """The keys every recipe has: ``seed`` (>= 0), ``device`` (cpu | cuda | auto), the run's ``logger``,
-    ``output_dir``, ``resume`` and ``progress`` (the tqdm bar). Each recipe's schema extends it."""
+    """The keys every recipe has: ``seed`` (>= 0), ``device`` (cpu | cuda | auto), ``num_threads`` (torch
+    intra-op threads, >= 1), the run's ``logger``, ``output_dir``, ``resume`` and ``progress`` (the tqdm bar).
+    Each recipe's schema extends it."""
 
     seed: int = integer(min=0)
     device: str = device()
+    num_threads: int = integer(min=1)
     logger: RunLoggerConfig = group(RunLoggerConfig)
     output_dir: str = string()
     resume: bool = boolean()

@@ -51,7 +51,6 @@ class EvalConfig:
 class DIAYNConfig(RunConfig):
     """Every key of ``recipes/config/diayn.yaml`` (:class:`RunConfig`'s and these); the yaml's comments say what each does."""
 
-    num_threads: int = integer(min=1)
     env: BatchedEnvConfig = group(BatchedEnvConfig)
     num_skills: int | None = integer(min=2)
     network: NetworkConfig = group(NetworkConfig)

@@ -56,7 +56,6 @@ class MetaTRPOConfig(TRPOConfig):
 class MAMLConfig(RunConfig):
     """Every key of ``recipes/config/maml.yaml`` (:class:`RunConfig`'s and these); the yaml's comments say what each does."""
 
-    num_threads: int = integer(min=1)
     env: MAMLEnvConfig = group(MAMLEnvConfig)
     proposal: str = choice(PROPOSALS)
     diayn_checkpoint: str = string()
