@@ -101,9 +101,13 @@ def test_stale_tmp_files_are_removed_and_config_is_written_atomically(tmp_path):
     Checkpointer(tmp_path).save({"x": 1}, 1, config={"seed": 0})
     (tmp_path / "step_2.pt.tmp").write_bytes(b"half a save")
     (tmp_path / "config.yaml.tmp").write_text("half")
+    assert resolve_checkpoint(tmp_path).name == "step_1.pt"  # a read-only lookup: another run may be writing
+    assert len(list(tmp_path.glob("*.tmp"))) == 2
     checkpointer = Checkpointer(tmp_path)
+    path, _ = checkpointer.load_latest_valid()  # the writer, resuming
     assert not list(tmp_path.glob("*.tmp"))
-    assert checkpointer.latest().name == "step_1.pt" and "seed: 0" in (tmp_path / "config.yaml").read_text()
+    assert path.name == "step_1.pt" and checkpointer.latest().name == "step_1.pt"
+    assert "seed: 0" in (tmp_path / "config.yaml").read_text()
 
 
 def test_replay_buffer_state_keeps_only_filled_rows_and_round_trips_through_wraps():

@@ -220,8 +220,9 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> None:
 class Checkpointer:
     """Saves ``state`` dicts as ``<directory>/step_<N>.pt`` with the resolved config in ``<directory>/config.yaml``.
 
-    Every file is written atomically (a ``.tmp`` then ``os.replace``); ``*.tmp`` files a killed save left behind are
-    removed when the checkpointer is created.
+    Every file is written atomically (a ``.tmp`` then ``os.replace``). ``*.tmp`` files a killed save left behind are
+    removed by the writer: at its first :meth:`save` or :meth:`load_latest_valid` (a resume). Read-only lookups
+    (:meth:`latest`, :func:`resolve_checkpoint`, loaders) never touch them: another run may be writing there.
 
     Args:
         directory: where checkpoints go (created on first save).
@@ -233,9 +234,14 @@ class Checkpointer:
     def __init__(self, directory: str | os.PathLike, keep_all: bool = False):
         self.directory = Path(directory)
         self.keep_all = keep_all
-        if self.directory.is_dir():
+        self._stale_removed = False
+
+    def _remove_stale_tmp(self) -> None:
+        """Once per writer: delete the ``*.tmp`` files a killed save left in :attr:`directory`."""
+        if not self._stale_removed and self.directory.is_dir():
             for stale in self.directory.glob("*.tmp"):
                 stale.unlink()
+        self._stale_removed = True
 
     def all(self) -> list[Path]:
         """Every checkpoint on disk, oldest step first."""
@@ -251,6 +257,7 @@ class Checkpointer:
 
     def save(self, state: Mapping[str, Any], step: int, config: Any = None) -> Path:
         """Write ``state`` for ``step`` atomically (a killed save never leaves a broken newest file)."""
+        self._remove_stale_tmp()
         self.directory.mkdir(parents=True, exist_ok=True)
         path = self.directory / f"step_{step}.pt"
         tmp = path.with_suffix(".pt.tmp")
@@ -278,6 +285,7 @@ class Checkpointer:
         """``(path, state)`` of the newest readable checkpoint, for ``resume=true``: an unreadable newer file is
         skipped with a warning naming it; ``FileNotFoundError`` if there is none, :class:`CheckpointError` if none
         can be read."""
+        self._remove_stale_tmp()
         found = self.all()
         if not found:
             return self.load()  # raises FileNotFoundError saying where it looked
