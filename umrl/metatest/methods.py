@@ -8,7 +8,6 @@
 """
 from __future__ import annotations
 
-import json
 import os
 import time
 from collections.abc import Mapping
@@ -18,8 +17,9 @@ from pathlib import Path
 import torch
 from tensordict.nn import TensorDictModuleBase
 
-from umrl.envs import make_env
+from umrl.envs import get_env_spec
 from umrl.envs.tasks import get_task_family
+from umrl.metatest.cache import write_json_atomic
 from umrl.metatest.protocol import (
     AdaptationConfig,
     TaskAdapter,
@@ -31,7 +31,7 @@ from umrl.metatest.protocol import (
 from umrl.metatest.results import to_rows, write_rows
 from umrl.modules.policy import make_gaussian_policy
 from umrl.proposals import PROPOSALS
-from umrl.runtime import seed_everything, write_text_atomic
+from umrl.runtime import seed_everything
 from umrl.validation import DEVICES, check_choice, resolve_device
 
 #: Pre-training recipes (the MAML recipe's task proposals are :data:`umrl.proposals.PROPOSALS`).
@@ -105,14 +105,6 @@ class Initialisation:
     num_skills: int | None = None
 
 
-def env_dims(env_name: str) -> tuple[int, int]:
-    """``(obs_dim, act_dim)`` of an env (builds one copy)."""
-    env = make_env(env_name, 1)
-    dims = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
-    env.close()
-    return dims
-
-
 def load_initialisation(method: str, env_name: str, checkpoint: str | os.PathLike | None, *,
                         seed: int, device: torch.device | str = "cpu") -> Initialisation:
     """The policy ``method`` starts meta-test from (see :data:`METHODS`); ``checkpoint`` is its pre-training output.
@@ -132,7 +124,8 @@ def _load_initialisation(method: str, env_name: str, checkpoint: str | os.PathLi
     pretraining = spec.pretraining
     if pretraining is None:
         seed_everything(seed)
-        return Initialisation(make_gaussian_policy(*env_dims(env_name)), spec.optimizer)
+        env = get_env_spec(env_name)
+        return Initialisation(make_gaussian_policy(env.obs_dim, env.act_dim), spec.optimizer)
     if checkpoint is None:
         raise ValueError(f"method {method!r} needs the checkpoint of its {pretraining.kind} pre-training.")
     if pretraining.recipe == "vime":
@@ -318,8 +311,8 @@ def run_cell(spec: CellSpec) -> str:
             sweep_config = replace(config, num_steps=spec.sweep.num_steps)
 
             def trial(trial_lr: float, tasks: torch.Tensor) -> torch.Tensor:
-                fresh = load_initialisation(spec.method, spec.env, spec.checkpoint, seed=spec.seed, device=device)
-                return meta_test(fresh, spec.env, tasks, lr=trial_lr, seed=spec.seed, config=sweep_config,
+                # meta_test adapts copies of init's parameters and reseeds: one init serves every trial
+                return meta_test(init, spec.env, tasks, lr=trial_lr, seed=spec.seed, config=sweep_config,
                                  skill_trajectories=spec.skill_trajectories, device=device)[0]
 
             lr, info["sweep_scores"] = sweep_learning_rate(
@@ -331,8 +324,7 @@ def run_cell(spec: CellSpec) -> str:
                 protocol=asdict(config), seconds=time.perf_counter() - start, mean_return=returns.mean(-1).tolist())
     rows = to_rows(returns, method=spec.method, env=spec.env, seed=spec.seed, lr_schedule=spec.lr_schedule,
                    **dict(spec.extra))
-    output.with_suffix(".json").parent.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(output.with_suffix(".json"), json.dumps(info, indent=1))
+    write_json_atomic(output.with_suffix(".json"), info)
     write_rows(rows, output)  # last: the CSV's existence marks the cell finished
     return str(output)
 
@@ -346,7 +338,6 @@ __all__ = [
     "Method",
     "Pretraining",
     "SweepConfig",
-    "env_dims",
     "get_method",
     "load_initialisation",
     "meta_test",

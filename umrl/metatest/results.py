@@ -8,6 +8,7 @@ and curves group rows by *arm*: the method, suffixed by its schedule when that i
 from __future__ import annotations
 
 import csv
+import io
 import os
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
@@ -17,6 +18,7 @@ import torch
 
 from umrl.metatest.plots import METHOD_COLORS, Curve
 from umrl.metatest.stats import auc, bootstrap_ci, summarize
+from umrl.runtime import write_text_atomic
 
 #: Columns of the tidy results table (``extra`` columns follow them).
 COLUMNS = ("method", "env", "seed", "task", "step", "return", "lr_schedule")
@@ -54,12 +56,11 @@ def write_rows(rows: Sequence[Mapping], path: str | os.PathLike) -> Path:
         raise ValueError(f"no rows to write to {path}.")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with tmp.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    os.replace(tmp, path)
+    text = io.StringIO(newline="")
+    writer = csv.DictWriter(text, fieldnames=list(rows[0]))
+    writer.writeheader()
+    writer.writerows(rows)
+    write_text_atomic(path, text.getvalue())
     return path
 
 
