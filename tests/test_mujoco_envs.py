@@ -9,6 +9,7 @@ from umrl.envs import make_task_env
 from umrl.envs.mujoco import MUJOCO_BACKENDS, make_mujoco_env
 from umrl.envs.mujoco_batched import BATCHED_ENVS
 from umrl.envs.tasks import get_task_family
+from umrl.runtime import env_state, load_env_state
 
 DIMS = {"half_cheetah": (17, 6), "ant": (107, 8)}
 PHYSICS = {
@@ -175,6 +176,17 @@ def test_reset_rng_state_round_trips_through_state_dict(name, act_dim):
     assert all(torch.equal(a, b) for a, b in zip(_resets_and_steps(other, 3, act_dim), expected, strict=True))
     with pytest.raises(ValueError, match="PCG64"):
         other.rng_state = {"bit_generator": "MT19937"}
+
+
+def test_gym_backend_reset_noise_round_trips_through_env_state():
+    """The reference backend's resume state: the gymnasium sub-envs' generators (``runtime.env_state``)."""
+    env = make_mujoco_env("half_cheetah", 3, seed=11, backend="gym")
+    _resets_and_steps(env, 1, 6)
+    saved = env_state(env)
+    expected = _resets_and_steps(env, 2, 6)
+    fresh = make_mujoco_env("half_cheetah", 3, seed=0, backend="gym")
+    load_env_state(fresh, saved)
+    assert all(torch.equal(a, b) for a, b in zip(_resets_and_steps(fresh, 2, 6), expected, strict=True))
 
 
 def test_no_mujoco_log_file_in_working_directory(tmp_path, monkeypatch):

@@ -77,6 +77,22 @@ class EnvRewardToKey(Transform):
         return reward_spec
 
 
+class GymnasiumVectorEnv(GymWrapper):
+    """TorchRL's ``GymWrapper`` over a gymnasium vector env whose ``state_dict()`` carries the sub-envs' reset-noise
+    generators (``np_random``), so a resumed run resets exactly as an uninterrupted one."""
+
+    def get_extra_state(self) -> dict:
+        return {"reset_rngs": [e.unwrapped.np_random.bit_generator.state for e in self._env.envs]}
+
+    def set_extra_state(self, state: dict) -> None:
+        rngs = state.get("reset_rngs") if isinstance(state, dict) else None
+        if rngs is None or len(rngs) != len(self._env.envs):
+            raise ValueError(f"expected extra state {{'reset_rngs': [{len(self._env.envs)} numpy generator states]}}, "
+                             f"got {state!r:.200}.")
+        for e, rng in zip(self._env.envs, rngs):
+            e.unwrapped.np_random.bit_generator.state = rng
+
+
 def make_gym_mujoco_env(name: str, num_envs: int, *, device: torch.device | str = "cpu") -> TransformedEnv:
     """``GymWrapper(gymnasium.make_vec(<v5 id>, num_envs, "sync"))`` with our keys; batch size ``[num_envs]``."""
     spec = MODEL_SPECS[name]
@@ -87,6 +103,6 @@ def make_gym_mujoco_env(name: str, num_envs: int, *, device: torch.device | str 
         vector_kwargs={"autoreset_mode": gymnasium.vector.AutoresetMode.DISABLED},
         **spec.gym_kwargs,
     )
-    env = GymWrapper(vec_env, device=device)
+    env = GymnasiumVectorEnv(vec_env, device=device)
     env.set_info_dict_reader(PhysicsInfoReader(name, num_envs, device))
     return TransformedEnv(env, Compose(DoubleToFloat(in_keys=["observation"]), EnvRewardToKey()))
