@@ -10,7 +10,7 @@ coverage metrics of DIAYN and VIME, the recipes' ``env.name`` choices) reads its
 """
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, KeysView, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -103,24 +103,6 @@ def get_env_spec(name: str) -> EnvSpec:
         raise ValueError(f"unknown env {name!r}; valid choices: {list(_REGISTRY)}.") from None
 
 
-class _RegisteredNames(Sequence):
-    """The names of the registered envs, in registration order, read live (an env registered later is in it)."""
-
-    def __getitem__(self, index):
-        return tuple(_REGISTRY)[index]
-
-    def __len__(self) -> int:
-        return len(_REGISTRY)
-
-    def __iter__(self) -> Iterator[str]:
-        return iter(tuple(_REGISTRY))
-
-    def __contains__(self, name: object) -> bool:
-        return name in _REGISTRY
-
-    def __repr__(self) -> str:
-        return repr(tuple(_REGISTRY))
-
-
-#: Names of the registered envs (a live view of the registry: ``"point_nav" in ENV_NAMES``, ``list(ENV_NAMES)``).
-ENV_NAMES: Sequence[str] = _RegisteredNames()
+#: Names of the registered envs, in registration order: a live view of the registry (an env registered later is in
+#: it): ``"point_nav" in ENV_NAMES``, ``list(ENV_NAMES)``.
+ENV_NAMES: KeysView[str] = _REGISTRY.keys()
