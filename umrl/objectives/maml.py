@@ -188,10 +188,8 @@ class MAMLLoss(LossModule):
         """
         support, query = self._subsample(support, query, fraction, generator)
         phi = self.adapt(support)
-        with torch.no_grad():
-            old = self.functional_policy.dist_params(phi.detach(), query)
-        new = self.functional_policy.dist_params(phi, query)
-        kl = gaussian_kl(old["loc"], old["scale"], new["loc"], new["scale"])
+        new = self.functional_policy.dist_params(phi, query)  # its detached value is the stop-gradient side
+        kl = gaussian_kl(new["loc"].detach(), new["scale"].detach(), new["loc"], new["scale"])
         return _masked_mean(kl, query[self.tensor_keys.mask])
 
     def _subsample(self, support, query, fraction, generator):
