@@ -169,6 +169,7 @@ def train(cfg: DictConfig) -> dict:
         save()  # iteration 0: the initialisation before meta-training, the ablation's first point
     logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, config=cfg, log_dir=out_dir)
     metrics: dict[str, float] = {}
+    path = checkpointer.latest()  # a run resumed at its budget returns its last checkpoint
     progress = tqdm.tqdm(total=cfg.iterations, initial=iteration, disable=not cfg.progress, desc="meta-iterations")
     while iteration < cfg.iterations:
         metrics = meta_iteration(cfg, proposal, policy, loss, trpo, generator)
@@ -178,10 +179,9 @@ def train(cfg: DictConfig) -> dict:
         progress.update(1)
         progress.set_postfix(pre=f"{metrics['train/return_pre']:.1f}", post=f"{metrics['train/return_post']:.1f}",
                              kl=f"{metrics['train/kl']:.4f}", learn=f"{metrics['time/learn_s']:.1f}s")
-        if iteration % cfg.checkpoint.every == 0:
-            save()
+        if iteration % cfg.checkpoint.every == 0 or iteration == cfg.iterations:  # and always the last one
+            path = save()
     progress.close()
-    path = save()
     env.close()
     return {**metrics, "iteration": iteration, "checkpoint": str(path)}
 

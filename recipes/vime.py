@@ -231,8 +231,8 @@ def train(cfg: DictConfig) -> dict:
         progress.set_postfix({k.split("/")[-1]: f"{metrics[k]:.3g}" for k in
                               ("coverage/cells", "coverage/velocity_range", "dynamics/heldout_log_likelihood")
                               if k in metrics})
-        if counters["iteration"] % cfg.checkpoint.every == 0:
-            save()
+        if counters["iteration"] % cfg.checkpoint.every == 0 or counters["iteration"] == cfg.iterations:
+            path = save()  # and always the last iteration (the figure below draws no random numbers)
     progress.close()
     if initial_states is not None:  # also on a resumed run
         spec = get_env_spec(cfg.env.name)
@@ -240,7 +240,6 @@ def train(cfg: DictConfig) -> dict:
                       eval_tasks=spec.task_family.eval_tasks(spec.num_eval_tasks),
                       baseline=initial_states, label="VIME policy",
                       baseline_label="initial policy", title=f"VIME {cfg.env.name}: visited states")
-    path = save()
     env.close()
     return {**metrics, "checkpoint": str(path)}
 
