@@ -27,7 +27,7 @@ from tensordict import TensorDict
 from torch.utils.flop_counter import FlopCounterMode
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
-from umrl.envs import ENV_NAMES, get_env_spec, make_env
+from umrl.envs import ENV_NAMES, get_env_spec
 from umrl.modules.discriminator import make_discriminator
 from umrl.modules.sac import make_skill_actor, make_skill_qvalue
 from umrl.objectives.diayn import DIAYNLoss, DIAYNUpdate, make_diayn_optimizers
@@ -129,9 +129,8 @@ def main() -> None:
     print(f"{'env':<13} {'variant':<19} {'updates/s':>10} {'vs eager':>9} {'GFLOP/upd':>10} "
           f"{'floor@peak upd/s':>17} {'floor@gemm upd/s':>17}")
     for env_name in args.envs:
-        probe = make_env(env_name, 1)
-        obs_dim, act_dim = probe.observation_spec["observation"].shape[-1], probe.action_spec.shape[-1]
-        probe.close()
+        env_spec = get_env_spec(env_name)
+        obs_dim, act_dim = env_spec.obs_dim, env_spec.act_dim
         variants = [Variant(n, env_name, obs_dim, act_dim, args, device) for n in names]
         flops = variants[0].flops()
         for variant in variants:

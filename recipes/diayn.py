@@ -113,9 +113,8 @@ def train(cfg: DictConfig) -> dict:
     checkpointer = Checkpointer(out_dir / "checkpoints", keep_all=cfg.checkpoint.keep_all)
 
     # --- networks, loss, optimisers -------------------------------------------------------------------
-    probe = make_env(cfg.env.name, 1, horizon=cfg.env.horizon, backend=cfg.env.backend)
-    obs_dim, act_dim = probe.observation_spec["observation"].shape[-1], probe.action_spec.shape[-1]
-    probe.close()
+    env_spec = get_env_spec(cfg.env.name)
+    obs_dim, act_dim = env_spec.obs_dim, env_spec.act_dim
     hidden, disc_hidden = list(cfg.network.hidden), list(cfg.network.discriminator_hidden)
     meta = {"env": cfg.env.name, "obs_dim": obs_dim, "act_dim": act_dim, "num_skills": num_skills,
             "hidden": hidden, "discriminator_hidden": disc_hidden,
