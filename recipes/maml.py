@@ -25,7 +25,8 @@ env_steps_per_s (pre + post env steps per second of collect_s), env_steps. Check
 """
 from __future__ import annotations
 
-import time
+import contextlib
+from collections.abc import Callable
 from pathlib import Path
 
 import hydra
@@ -40,6 +41,7 @@ from umrl.modules.policy import make_gaussian_policy
 from umrl.objectives.maml import MAMLLoss
 from umrl.objectives.policy_gradient import compute_advantages, episode_returns
 from umrl.optim.trpo import TRPOStep
+from umrl.profiling import device_clock
 from umrl.proposals import make_proposal
 from umrl.rollout import collect
 from umrl.runtime import (
@@ -56,40 +58,30 @@ from umrl.runtime import (
 from umrl.validation import resolve_device
 
 
-def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPOStep,
-                   generator: torch.Generator) -> dict[str, float]:
-    """Collect support and query batches for a fresh meta-batch and take one TRPO meta-step; return metrics."""
+def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPOStep, generator: torch.Generator,
+                   *, learn_context: Callable[[], contextlib.AbstractContextManager] = contextlib.nullcontext) -> dict[str, float]:
+    """Collect support and query batches for a fresh meta-batch and take one TRPO meta-step; return metrics.
+
+    ``learn_context`` wraps the learning step alone (inner adaptation and TRPO step), e.g. a FLOP counter
+    (``benchmarks/meta_iteration.py``). Times are taken after the device's queued work (CUDA) has finished."""
     num_tasks, horizon = proposal.num_tasks, cfg.env.horizon
     adv = {"gamma": cfg.advantage.gamma, "lmbda": cfg.advantage.lmbda, "normalize": cfg.advantage.normalize}
-    start = time.perf_counter()
+    device = next(policy.parameters()).device
+    start = device_clock(device)
     proposal.resample(generator)
     support = compute_advantages(collect(proposal.env, policy, num_tasks=num_tasks, horizon=horizon), **adv)
     check_finite({"reward": support["next", "reward"]}, "the pre-update rollouts")
-    inner_start = time.perf_counter()
-    with torch.enable_grad():  # the graph (second order unless first_order) is reused by the meta-step below
+    inner_start = device_clock(device)
+    with torch.enable_grad(), learn_context():  # the graph (second order unless first_order) is reused below
         adapted = loss.adapt(support)
     check_finite(dict(adapted.items(True, True)), "the adapted parameters (inner step)")
-    inner_s = time.perf_counter() - inner_start
+    inner_s = device_clock(device) - inner_start
     query = collect(proposal.env, policy, num_tasks=num_tasks, horizon=horizon, params=adapted.detach())
     query = compute_advantages(query, **adv)
-    collected = time.perf_counter()
-
-    fraction = cfg.trpo.hvp_fraction
-    with torch.enable_grad():  # the meta-step's first evaluation, through the inner step's graph
-        initial = loss.objective_and_kl(support, query, phi=adapted)
-
-    def closure():
-        return loss.objective_and_kl(support, query)
-
-    if cfg.trpo.hvp == "gauss_newton":
-        info = trpo(closure, initial=initial,
-                    hvp=lambda: loss.gauss_newton_hvp(support, query, fraction=fraction, generator=generator))
-    elif fraction < 1:
-        info = trpo(closure, lambda: loss.hvp_kl(support, query, fraction=fraction, generator=generator),
-                    initial=initial)
-    else:  # the closure's own KL graph
-        info = trpo(closure, initial=initial)
-    learned = time.perf_counter()
+    collected = device_clock(device)
+    with learn_context():
+        info = _meta_step(cfg, loss, trpo, support, query, adapted, generator)
+    learned = device_clock(device)
 
     reward = support["next", "reward"][support["mask"]]
     steps = 2 * support["mask"].numel()
@@ -111,8 +103,27 @@ def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPO
     return metrics
 
 
+def _meta_step(cfg: DictConfig, loss: MAMLLoss, trpo: TRPOStep, support, query, adapted,
+               generator: torch.Generator) -> dict[str, float]:
+    """TRPO's meta-step through the inner step, with the KL Hessian-vector products ``cfg.trpo.hvp`` names."""
+    fraction = cfg.trpo.hvp_fraction
+    with torch.enable_grad():  # the meta-step's first evaluation, through the inner step's graph
+        initial = loss.objective_and_kl(support, query, phi=adapted)
+
+    def closure():
+        return loss.objective_and_kl(support, query)
+
+    if cfg.trpo.hvp == "gauss_newton":
+        return trpo(closure, initial=initial,
+                    hvp=lambda: loss.gauss_newton_hvp(support, query, fraction=fraction, generator=generator))
+    if fraction < 1:
+        return trpo(closure, lambda: loss.hvp_kl(support, query, fraction=fraction, generator=generator),
+                    initial=initial)
+    return trpo(closure, initial=initial)  # the closure's own KL graph
+
+
 def build(cfg: DictConfig):
-    """``(proposal, policy, loss, trpo)`` from the config (shared with ``benchmarks/meta_iteration.py``); the
+    """``(proposal, policy, loss, trpo)`` from the config (``benchmarks/meta_iteration.py`` times these too); the
     policy, the loss, TRPO's state and the proposal's env and discriminator live on ``cfg.device``."""
     device = torch.device(resolve_device("device", cfg.device))
     proposal = make_proposal(
