@@ -1,0 +1,20 @@
+"""Smoke runs of the timing benchmarks on tiny settings: they build what the recipes build and print their table."""
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_meta_iteration_times_the_recipes_step_for_each_variant():
+    out = subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / "meta_iteration.py"), "--preset", "reference", "--tasks", "2",
+         "--trajectories", "2", "--repeats", "1", "--task-loop", "batched", "loop"],
+        capture_output=True, text=True, timeout=300, check=True, cwd=REPO,
+    ).stdout
+    assert "reference: point_nav 2 tasks x 2 traj x 100 steps" in out
+    table = [line.split() for line in out.splitlines() if "learn/floor" in line]
+    assert [row[0] for row in table] == ["batched", "loop"]
+    for row in table:
+        learn, floor = float(row[row.index("learn") + 1]), float(row[row.index("floor") + 1])
+        assert learn > 0 and 0 < floor < learn  # the arithmetic floor bounds the measured step from below
