@@ -59,7 +59,7 @@ from omegaconf import DictConfig, OmegaConf
 
 import recipes
 from umrl.configs import ConfigError, validate
-from umrl.configs.suite import RECIPE_SCHEMAS, SuiteConfig
+from umrl.configs.suite import RECIPE_SCHEMAS, SuiteConfig, needed_pretraining, pretrain_seeds, reuse_dir
 from umrl.configs.validate import check_partial
 from umrl.metatest import (
     CellSpec,
@@ -374,17 +374,6 @@ def sgd_schedules(cfg: DictConfig) -> list[str]:
     return [str(value)] if isinstance(value, str) else [str(v) for v in value]
 
 
-def pretrain_seeds(cfg: DictConfig) -> list[int]:
-    """The pre-training seed of each meta-test seed (``pretrain_seeds`` validated): null = the meta-test seeds
-    (independent pre-training), an int = one run shared by every seed, or a list as long as ``seeds``."""
-    value, seeds = cfg.pretrain_seeds, [int(s) for s in cfg.seeds]
-    if value is None:
-        return seeds
-    if isinstance(value, int):
-        return [value] * len(seeds)
-    return [int(v) for v in value]
-
-
 def _hydra_value(value) -> str:
     """A value in Hydra's override grammar (lists as ``[a,b]``, null, strings quoted unless plain)."""
     if value is None:
@@ -444,13 +433,6 @@ class PretrainRun:
         return f"{self.run.kind} pre-training on {self.env}, seed {self.seed} -> {self.run_dir}"
 
 
-def _reuse_dir(cfg: DictConfig, run: Pretraining, env: str, seed: int) -> Path | None:
-    template = cfg.pretrain[run.recipe].get("reuse")
-    if isinstance(template, Mapping) or OmegaConf.is_dict(template):
-        template = template.get(run.proposal)
-    return Path(str(template).format(env=env, seed=seed, proposal=run.proposal)).absolute() if template else None
-
-
 def _suite_overrides(cfg: DictConfig, run: Pretraining, env: str, seed: int, group: str,
                      runs: Mapping[tuple[str, str, int], PretrainRun]) -> list[str]:
     """What the suite sets in a recipe's config: env, seed, device, torch threads (``launcher.threads``), logging,
@@ -473,13 +455,11 @@ def plan_pretraining(cfg: DictConfig, group: str, code: str) -> dict[tuple[str, 
     """
     runs: dict[tuple[str, str, int], PretrainRun] = {}
     errors: list[str] = []
-    needed = {get_method(m).pretraining for m in cfg.methods} - {None}
-    needed |= {r for run in needed for r in run.requires}
-    ordered = sorted(needed, key=lambda r: (len(r.requires), r.kind))  # DIAYN before MAML(diayn)
+    ordered = sorted(needed_pretraining(list(cfg.methods)), key=lambda r: len(r.requires))  # DIAYN before MAML(diayn)
     for env in cfg.envs:
         for seed in sorted(set(pretrain_seeds(cfg))):
             for run in ordered:
-                reuse = _reuse_dir(cfg, run, env, seed)
+                reuse = reuse_dir(cfg, run, env, seed)
                 if reuse is not None:
                     runs[run.kind, env, seed] = PretrainRun(run, env, seed, reuse)
                     continue

@@ -203,23 +203,38 @@ def needed_pretraining(methods: list[str]) -> list[Pretraining]:
     return sorted(runs, key=lambda r: r.kind)
 
 
+def pretrain_seeds(cfg: Mapping) -> list[int]:
+    """The pre-training seed of each meta-test seed (``pretrain_seeds`` validated): null = the meta-test seeds
+    (independent pre-training), an int = one run shared by every seed, or a list as long as ``seeds``."""
+    value, seeds = cfg["pretrain_seeds"], [int(s) for s in cfg["seeds"]]
+    if value is None:
+        return seeds
+    if isinstance(value, int):
+        return [value] * len(seeds)
+    return [int(v) for v in value]
+
+
+def reuse_dir(cfg: Mapping, run: Pretraining, env: str, seed: int) -> Path | None:
+    """The finished run ``pretrain.<recipe>.reuse`` names for ``run`` on (``env``, ``seed``), or None: a template with
+    ``{env}``, ``{seed}``, ``{proposal}``, or for MAML a mapping from proposal to template."""
+    template = cfg["pretrain"][run.recipe]["reuse"]
+    if isinstance(template, Mapping):
+        template = template.get(run.proposal)
+    return Path(str(template).format(env=env, seed=seed, proposal=run.proposal)).absolute() if template else None
+
+
 def _reuse_errors(cfg: dict) -> list[str]:
     """A ``reuse`` template the suite would use must point at runs holding a checkpoint for every (env, seed)."""
     errors = []
-    seeds = cfg["pretrain_seeds"]
-    seeds = sorted(set(cfg["seeds"] if seeds is None else [seeds] if isinstance(seeds, int) else seeds))
     for run in needed_pretraining(cfg["methods"]):
-        recipe, proposal = run.recipe, run.proposal
-        template, key = cfg["pretrain"][recipe]["reuse"], f"pretrain.{recipe}.reuse"
-        if isinstance(template, dict):
-            template, key = template.get(proposal), f"{key}.{proposal}"
-        if not template:
-            continue
+        template, key = cfg["pretrain"][run.recipe]["reuse"], f"pretrain.{run.recipe}.reuse"
+        if isinstance(template, Mapping):
+            template, key = template.get(run.proposal), f"{key}.{run.proposal}"
         for env in cfg["envs"]:
-            for seed in seeds:
-                run_dir = Path(template.format(env=env, seed=seed, proposal=proposal))
-                if Checkpointer(run_dir / "checkpoints").latest() is None:
+            for seed in sorted(set(pretrain_seeds(cfg))):
+                run_dir = reuse_dir(cfg, run, env, seed)
+                if run_dir is not None and Checkpointer(run_dir / "checkpoints").latest() is None:
                     errors.append(InvalidValue(
                         key, template, "a finished run directory holding checkpoints/step_*.pt",
-                        note=f"env={env} seed={seed}: {run_dir.absolute()} has no checkpoint").message())
+                        note=f"env={env} seed={seed}: {run_dir} has no checkpoint").message())
     return errors
