@@ -155,3 +155,15 @@ def test_ray_launcher_runs_two_cells(tmp_path):
         ray.shutdown()
     assert not failed and succeeded == {j.key for j in jobs}
     assert {r["seed"] for r in read_rows(tmp_path.rglob("seed*.csv"))} == {0, 1}
+
+
+def test_reuse_templates_point_the_plan_at_finished_runs(tmp_path):
+    for proposal in ("random", "oracle"):
+        (tmp_path / "runs" / proposal / "point_nav" / "checkpoints").mkdir(parents=True)
+        (tmp_path / "runs" / proposal / "point_nav" / "checkpoints" / "step_5.pt").write_bytes(b"")
+    template = f"{tmp_path}/runs/{{proposal}}/{{env}}"
+    cfg = _cfg(tmp_path / "out", "seeds=[0]", "methods=[uml_random,oracle]", f"pretrain.maml.reuse='{template}'")
+    runs = suite.plan_pretraining(cfg, "g", "code")
+    for proposal in ("random", "oracle"):
+        run = runs[f"maml_{proposal}", "point_nav", 0]
+        assert run.reused and run.run_dir == tmp_path / "runs" / proposal / "point_nav"
