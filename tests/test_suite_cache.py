@@ -41,6 +41,10 @@ def test_keys_follow_config_and_code(tmp_path):
     assert source_version([tmp_path / "pkg"]) == before
     (tmp_path / "pkg" / "m.py").write_text("x = 2\n")
     assert source_version([tmp_path / "pkg"]) != before
+    edited = source_version([tmp_path / "pkg"], exclude=["pkg/plots.py"])
+    (tmp_path / "pkg" / "plots.py").write_text("colour = 'red'\n")  # drawing code: recomputes nothing
+    assert source_version([tmp_path / "pkg"], exclude=["pkg/plots.py"]) == edited
+    assert source_version([tmp_path / "pkg"], exclude=[]) != edited
 
 
 def test_changed_k_recomputes_and_the_table_never_mixes(tmp_path):

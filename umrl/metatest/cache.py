@@ -32,16 +32,25 @@ DONE_MARKER = "suite_complete"
 SOURCE_SUFFIXES = (".py", ".yaml")
 
 
-def source_version(roots: Iterable[str | os.PathLike]) -> str:
+REPORT_ONLY = ("umrl/metatest/plots.py", "umrl/metatest/provenance.py")
+"""Sources that only draw or describe results (no pre-training run or cell executes them): editing them recomputes
+nothing."""
+
+
+def source_version(roots: Iterable[str | os.PathLike], exclude: Iterable[str] = REPORT_ONLY) -> str:
     """A :data:`KEY_LENGTH`-digit hash of every ``*.py`` and ``*.yaml`` file under ``roots`` (relative path and
-    bytes, in sorted order): the code a result ran with. Works without git and sees uncommitted edits."""
-    digest = hashlib.sha256()
+    bytes, in sorted order) but those named in ``exclude`` (``<root folder name>/<path in it>``): the code a result
+    ran with. Works without git and sees uncommitted edits."""
+    digest, skip = hashlib.sha256(), set(exclude)
     for root in map(Path, roots):
         if not root.is_dir():
             raise FileNotFoundError(f"source_version: {root} is not a directory.")
         files = sorted(p for p in root.rglob("*") if p.suffix in SOURCE_SUFFIXES and "__pycache__" not in p.parts)
         for path in files:
-            digest.update(f"{root.name}/{path.relative_to(root).as_posix()}\0".encode())
+            name = f"{root.name}/{path.relative_to(root).as_posix()}"
+            if name in skip:
+                continue
+            digest.update(f"{name}\0".encode())
             digest.update(path.read_bytes())
             digest.update(b"\0")
     return digest.hexdigest()[:KEY_LENGTH]
