@@ -191,14 +191,15 @@ class CheckpointError(ValueError):
     """A checkpoint file that cannot be read (truncated, empty, not a ``torch.save`` file); names the file."""
 
 
-def read_checkpoint(path: str | os.PathLike) -> Any:
+def read_checkpoint(path: str | os.PathLike, *, mmap: bool = False) -> Any:
     """``torch.load`` of ``path`` on the CPU; a truncated, empty or foreign file raises :class:`CheckpointError`
-    naming it (instead of ``PytorchStreamReader failed`` / ``EOFError`` without a path)."""
+    naming it (instead of ``PytorchStreamReader failed`` / ``EOFError`` without a path). ``mmap=True`` maps the
+    tensors instead of reading them (loaders that keep a network and skip the replay buffers). An error raised by
+    the code unpickling it (a class that moved or changed) propagates as it is: the file is fine."""
     path = Path(path)
     try:
-        return torch.load(path, map_location="cpu", weights_only=False)
-    except (RuntimeError, EOFError, OSError, ValueError, TypeError, AttributeError, ImportError,
-            pickle.UnpicklingError) as e:
+        return torch.load(path, map_location="cpu", weights_only=False, mmap=mmap)
+    except (RuntimeError, EOFError, OSError, ValueError, pickle.UnpicklingError) as e:
         if isinstance(e, FileNotFoundError):
             raise
         size = path.stat().st_size if path.is_file() else 0

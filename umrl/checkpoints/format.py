@@ -54,7 +54,7 @@ class CheckpointFormat:
         (the latest ``step_*.pt``); ``FileNotFoundError`` says what was looked for, ``CheckpointError`` names an
         unreadable file."""
         file = resolve_checkpoint(path)
-        return self.check(read_checkpoint(file), file)
+        return self.check(read_checkpoint(file, mmap=True), file)
 
     def load_for_resume(self, checkpointer: Checkpointer, meta: Mapping[str, Any],
                         check_config: Callable[[Any], None] | None = None) -> dict:
