@@ -36,7 +36,7 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import RewardSum
 
 from umrl.checkpoints import DIAYN_FORMAT, save_diayn_checkpoint
-from umrl.configs import check_resume, validate
+from umrl.configs import RESUME_ALLOW, check_resume, validate
 from umrl.configs.diayn import DIAYNConfig
 from umrl.envs import get_env_spec, make_env
 from umrl.modules.discriminator import make_discriminator
@@ -120,7 +120,10 @@ def train(cfg: DictConfig) -> dict:
             "hidden": hidden, "discriminator_hidden": disc_hidden,
             "discriminator_observation_key": ["next", "observation"]}
     # FileNotFoundError says what is missing; ConfigError lists changed keys; ValueError if format or meta differ
-    state = DIAYN_FORMAT.load_for_resume(checkpointer, meta, lambda saved: check_resume(saved, cfg)) if cfg.resume else None
+    # the collector restarts its episodes at every checkpoint: a changed checkpoint.every would continue another run
+    allow = [key for key in RESUME_ALLOW if key != "checkpoint.every"]
+    state = (DIAYN_FORMAT.load_for_resume(checkpointer, meta, lambda saved: check_resume(saved, cfg, allow))
+             if cfg.resume else None)
     # initialised on the CPU (the same weights on every device), then moved before the loss copies their parameters
     actor = make_skill_actor(obs_dim, num_skills, act_dim, hidden=hidden).to(device)
     discriminator = make_discriminator(obs_dim, num_skills, hidden=disc_hidden).to(device)

@@ -107,6 +107,7 @@ def test_resume_falls_back_past_a_truncated_checkpoint(tmp_path):
     ("maml", "trpo.max_kl=0.5", "trpo.max_kl: checkpoint has 0.01, this run has 0.5"),
     ("maml", "env.horizon=12", "env.horizon: checkpoint has 10, this run has 12"),
     ("diayn", "optim.lr=0.5", "optim.lr: checkpoint has 0.0003, this run has 0.5"),
+    ("diayn", "checkpoint.every=80", "checkpoint.every: checkpoint has 40, this run has 80"),
 ])
 def test_resume_with_a_changed_config_is_refused_with_the_keys(tmp_path, recipe, change, message):
     train = importlib.import_module(f"recipes.{recipe}").train
