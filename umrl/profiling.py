@@ -2,10 +2,10 @@
 turns a FLOP count into an arithmetic floor."""
 from __future__ import annotations
 
-import statistics
 import time
 
 import torch
+from torch.utils.benchmark import Timer
 
 __all__ = ["device_clock", "matmul_rate"]
 
@@ -17,17 +17,9 @@ def device_clock(device: torch.device) -> float:
     return time.perf_counter()
 
 
-def matmul_rate(device: torch.device, m: int, k: int, n: int, repeats: int = 5) -> float:
-    """Median FLOP/s of a float32 ``[m, k] @ [k, n]`` ``torch.mm`` on ``device`` at the current thread count (each
-    timing repeats the product up to ~2 GFLOP, so small shapes are not lost in the clock's resolution)."""
+def matmul_rate(device: torch.device, m: int, k: int, n: int, *, min_run_time: float = 0.2) -> float:
+    """Median FLOP/s of a float32 ``[m, k] @ [k, n]`` ``torch.mm`` on ``device`` at the current thread count
+    (``torch.utils.benchmark.Timer``: it synchronises CUDA and picks the repeat count)."""
     a, b = torch.randn(m, k, device=device), torch.randn(k, n, device=device)
-    flops = 2 * m * k * n
-    inner = max(1, int(2e9 // flops))
-    torch.mm(a, b)
-    times = []
-    for _ in range(repeats):
-        start = device_clock(device)
-        for _ in range(inner):
-            torch.mm(a, b)
-        times.append((device_clock(device) - start) / inner)
-    return flops / statistics.median(times)
+    timer = Timer("torch.mm(a, b)", globals={"torch": torch, "a": a, "b": b}, num_threads=torch.get_num_threads())
+    return 2 * m * k * n / timer.blocked_autorange(min_run_time=min_run_time).median
