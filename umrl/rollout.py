@@ -47,8 +47,9 @@ class FunctionalPolicy:
             ``vmap``), ``False`` one ``torch.func.vmap(functional_call)``, ``True`` a Python loop of
             ``functional_call`` over tasks (the per-task reference). Results agree to float rounding (tested).
             Measured on 2 CPU cores (``benchmarks/meta_iteration.py --preset reference --task-loop batched loop``,
-            40 tasks, 2×100 MLP, 2000 samples per task): batched learning was 1.12× faster than the loop with the
-            full-batch KL Hessian and 1.9× with ``--hvp-fraction 0.1``; on one thread it was 1.12× slower.
+            40 tasks, 2×100 MLP, 2000 samples per task): with the full-batch KL Hessian the batched learning step
+            was no faster than the loop (the loop took 0.92× its time, 0.86× on one thread); with ``--hvp-fraction 0.1``
+            it was 2.2× faster.
     """
 
     def __init__(self, policy: ProbabilisticActor, *, task_loop: bool | None = None):
