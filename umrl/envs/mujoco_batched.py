@@ -11,6 +11,9 @@ batch: one native call steps all rows on a C++ thread pool with the GIL released
 ``mj_step`` at any thread count). HalfCheetah is stepped by that call. Ant also needs ``mj_rnePostConstraint``
 after each step (gymnasium's contact forces), which the batch does not run: its rows are stepped copy by copy on a
 Python thread pool, one ``MjData`` per thread (``mj_step`` releases the GIL, the per-copy calls around it do not).
+An acceleration sensor (``framelinacc``), which makes ``mj_step`` compute the contact forces, is no substitute: Ant
+uses RK4, so gymnasium's post-step call sees the last Runge-Kutta stage while a sensor sees the step's first
+(measured on 64 copies over 100 steps: identical states, raw contact forces up to 338 apart).
 
 Keys (``B`` = batch size, all float32 unless noted): ``"observation"`` ``[B, obs_dim]``, ``"action"`` ``[B, act_dim]``
 in ``[-1, 1]``, ``("next", "reward")`` ``[B, 1]`` zeros (reward-free CMP), ``"env_reward"`` ``[B, 1]`` gymnasium's
