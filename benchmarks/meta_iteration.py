@@ -57,11 +57,17 @@ class Variant:
         self.proposal, self.policy, self.loss, self.trpo = build(self.cfg)
         self.rng = rng_state()
 
-    def iteration(self, flops: FlopCounterMode | None = None) -> dict[str, float]:
-        """One meta-iteration; with ``flops`` the learning step alone runs under that counter."""
+    def iteration(self, counters: list[FlopCounterMode] | None = None) -> dict[str, float]:
+        """One meta-iteration; with ``counters`` each part of the learning step runs under a new FLOP counter
+        appended to it (their sum is the step's FLOPs)."""
+
+        def counter() -> FlopCounterMode:
+            counters.append(FlopCounterMode(display=False))
+            return counters[-1]
+
         set_rng_state(self.rng)
         metrics = meta_iteration(self.cfg, self.proposal, self.policy, self.loss, self.trpo, self.generator,
-                                 **({"learn_context": lambda: flops} if flops is not None else {}))
+                                 **({"learn_context": counter} if counters is not None else {}))
         self.rng = rng_state()
         return metrics
 
@@ -90,9 +96,9 @@ def main() -> None:
     device = torch.device(cfg.device)
     flops = {}
     for name, variant in variants.items():  # warm-up iteration, FLOPs of the learning step counted (not timed)
-        counter = FlopCounterMode(display=False)
-        info = variant.iteration(counter)
-        flops[name] = counter.get_total_flops()
+        counters = []
+        info = variant.iteration(counters)
+        flops[name] = sum(c.get_total_flops() for c in counters)
         if args.metrics:
             print(f"  {name} warm-up: {json.dumps(info)}", flush=True)
     rows = {name: {"collect_s": [], "learn_s": []} for name in variants}

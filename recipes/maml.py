@@ -62,8 +62,10 @@ def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPO
                    *, learn_context: Callable[[], contextlib.AbstractContextManager] = contextlib.nullcontext) -> dict[str, float]:
     """Collect support and query batches for a fresh meta-batch and take one TRPO meta-step; return metrics.
 
-    ``learn_context`` wraps the learning step alone (inner adaptation and TRPO step), e.g. a FLOP counter
-    (``benchmarks/meta_iteration.py``). Times are taken after the device's queued work (CUDA) has finished."""
+    ``learn_context`` makes the context manager that wraps each part of the learning step alone: it is called twice
+    per iteration, for the inner adaptation and for the TRPO step (the query collection runs between them), e.g.
+    fresh FLOP counters (``benchmarks/meta_iteration.py``; one ``FlopCounterMode`` entered twice would forget the
+    first part). Times are taken after the device's queued work (CUDA) has finished."""
     num_tasks, horizon = proposal.num_tasks, cfg.env.horizon
     adv = {"gamma": cfg.advantage.gamma, "lmbda": cfg.advantage.lmbda, "normalize": cfg.advantage.normalize}
     device = next(policy.parameters()).device

@@ -18,3 +18,17 @@ def test_meta_iteration_times_the_recipes_step_for_each_variant():
     for row in table:
         learn, floor = float(row[row.index("learn") + 1]), float(row[row.index("floor") + 1])
         assert learn > 0 and 0 < floor < learn  # the arithmetic floor bounds the measured step from below
+
+
+def test_meta_iteration_counts_both_parts_of_the_learning_step(tmp_path):
+    """The recipe enters its learning context twice (inner adaptation, then the TRPO step, with the query collection
+    between): the benchmark's FLOP count is the sum of a counter per part, not one counter that forgets the first."""
+    from script_loading import load_script
+
+    bench = load_script("benchmarks/meta_iteration.py")
+    variant = bench.Variant([*bench.PRESETS["reference"], "meta_batch_size=2", "trajectories_per_task=2",
+                             "env.horizon=10", "proposal=oracle", "logger.backend=none", f"output_dir={tmp_path}"])
+    counters = []
+    variant.iteration(counters)
+    assert len(counters) == 2 and all(c.get_total_flops() > 0 for c in counters)
+    assert counters[1].get_total_flops() > counters[0].get_total_flops()  # CG and line search outweigh one adaptation
