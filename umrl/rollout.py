@@ -48,8 +48,8 @@ class FunctionalPolicy:
             ``functional_call`` over tasks (the per-task reference). Results agree to float rounding (tested).
             Measured on 2 CPU cores (``benchmarks/meta_iteration.py --preset reference --task-loop batched loop``,
             40 tasks, 2×100 MLP, 2000 samples per task): with the full-batch KL Hessian the batched learning step
-            was no faster than the loop (the loop took 0.92× its time, 0.86× on one thread); with ``--hvp-fraction 0.1``
-            it was 2.2× faster.
+            was no faster than the loop (the loop took 0.89-0.92× its time in two runs, 0.86× on one thread); with
+            ``--hvp-fraction 0.1`` it was 1.75-2.2× faster.
     """
 
     def __init__(self, policy: ProbabilisticActor, *, task_loop: bool | None = None):
