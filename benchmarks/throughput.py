@@ -22,8 +22,9 @@ Rows, per env and batch size ``B`` (policy = the 2x300 Gaussian MLP of :mod:`umr
 
 ``--scaling`` prints a thread-scaling table instead, for half_cheetah and ant at ``B = --scaling-batch`` (800): at
 1, 2, 4, 8, 16 threads (up to the usable CPUs, or the ``--threads`` list) the physics limit (``mujoco.rollout`` open
-loop on that many threads), the batched backend alone (random actions) and with the 2x300 policy (``env.rollout``,
-torch on the same number of threads), and their ratios to the limit; then the time to collect one paper-settings
+loop on that many threads), the batched backend alone (random actions) and with the 2x300 policy (``env.rollout``:
+torch on one thread beside the physics, as umrl collects, see :mod:`umrl.envs.threads`; and, last column, torch on
+the same number of threads as the physics), and their ratios to the limit; then the time to collect one paper-settings
 half_cheetah meta-iteration (20 tasks x 40 trajectories x 100 steps, pre- and post-update: 160 k env steps) through
 :func:`umrl.rollout.collect` with per-task parameters, on all the threads.
 """
@@ -31,6 +32,7 @@ half_cheetah meta-iteration (20 tasks x 40 trajectories x 100 steps, pre- and po
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import statistics
 import sys
@@ -50,6 +52,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from umrl.envs import ENV_NAMES, make_env
 from umrl.envs.mujoco_batched import BATCHED_ENVS, MODEL_SPECS
+from umrl.envs.threads import torch_threads_beside_physics
 from umrl.modules.policy import make_gaussian_policy
 from umrl.rollout import collect
 
@@ -310,16 +313,19 @@ def format_table(benches: list[Bench], rates: dict[int, list[float]]) -> str:
     return "\n".join(lines)
 
 
-def _batched(name: str, batch: int, steps: int, threads: int, with_policy: bool):
-    """The batched backend on ``threads`` threads (torch too), ``env.rollout`` with or without the policy."""
+def _batched(name: str, batch: int, steps: int, threads: int, policy_threads: str | None):
+    """The batched backend on ``threads`` threads, ``env.rollout`` alone (``policy_threads=None``) or with the
+    policy, torch on one thread beside the physics as umrl collects (``"umrl"``) or on ``threads`` (``"all"``)."""
 
     def setup():
         env = BATCHED_ENVS[name](batch, seed=0, num_threads=threads)
-        policy = _policy(env) if with_policy else None
+        policy = _policy(env) if policy_threads else None
+        beside = torch_threads_beside_physics if policy_threads == "umrl" else contextlib.nullcontext
 
         def run() -> int:
             torch.set_num_threads(threads)
-            env.rollout(steps, policy, break_when_any_done=False)
+            with beside(env):
+                env.rollout(steps, policy, break_when_any_done=False)
             return batch * steps
 
         return run
@@ -337,21 +343,24 @@ def scaling_table(args, repeats: int) -> str:
         for t in threads:
             benches += [
                 (name, t, "limit", True, _physics_limit(name, batch, steps, t)),
-                (name, t, "alone", False, _batched(name, batch, steps, t, False)),
-                (name, t, "policy", False, _batched(name, batch, steps, t, True)),
+                (name, t, "alone", False, _batched(name, batch, steps, t, None)),
+                (name, t, "policy", False, _batched(name, batch, steps, t, "umrl")),
+                (name, t, "policy, torch all", False, _batched(name, batch, steps, t, "all")),
             ]
     rates = run_benchmarks(benches, repeats)
     med = {(e, t, label): statistics.median(rates[i]) for i, (e, t, label, *_) in enumerate(benches)}
     lines = [
         f"thread scaling, B={batch}, env steps/s (medians of {repeats} interleaved repeats)",
         f"{'env':<13}{'threads':>8}{'mujoco.rollout limit':>22}{'batched alone':>15}{'batched + policy':>18}"
-        + f"{'alone/limit':>13}{'policy/limit':>14}",
+        + f"{'alone/limit':>13}{'policy/limit':>14}{'torch all thr/limit':>21}",
     ]
     for name, t in dict.fromkeys((e, t) for e, t, *_ in benches):
-        limit, alone, policy = (med[(name, t, k)] for k in ("limit", "alone", "policy"))
+        limit, alone, policy, policy_all = (
+            med[(name, t, k)] for k in ("limit", "alone", "policy", "policy, torch all")
+        )
         lines.append(
             f"{name:<13}{t:>8}{limit:>22,.0f}{alone:>15,.0f}{policy:>18,.0f}{alone / limit:>13.2f}"
-            f"{policy / limit:>14.2f}"
+            f"{policy / limit:>14.2f}{policy_all / limit:>21.2f}"
         )
     return "\n".join(lines)
 

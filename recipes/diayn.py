@@ -39,6 +39,7 @@ from umrl.checkpoints import DIAYN_FORMAT, save_diayn_checkpoint
 from umrl.configs import RESUME_ALLOW, check_resume, validate
 from umrl.configs.diayn import DIAYNConfig
 from umrl.envs import get_env_spec, make_env
+from umrl.envs.threads import batches_beside_physics
 from umrl.modules.discriminator import make_discriminator
 from umrl.modules.sac import make_skill_actor, make_skill_qvalue
 from umrl.objectives.diayn import DIAYNLoss, DIAYNUpdate, make_diayn_optimizers
@@ -183,7 +184,7 @@ def train(cfg: DictConfig) -> dict:
                          unit="frames", desc=f"DIAYN {cfg.env.name}")
     metrics, start, path = {}, time.perf_counter(), None
     collect_start = time.perf_counter()
-    for data in collector:
+    for data in batches_beside_physics(collector, env):
         collect_time = time.perf_counter() - collect_start
         data = data.reshape(-1)
         buffer.extend(data)

@@ -25,6 +25,7 @@ from torch.func import functional_call
 from torchrl.envs import EnvBase, ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor
 
+from umrl.envs.threads import torch_threads_beside_physics
 from umrl.modules.batched_mlp import BatchedGaussianMLP
 from umrl.trajectories import trajectory_mask
 
@@ -142,7 +143,7 @@ def collect(
             return td.update(functional.act(params, td))
         return td.update(functional.act(params, td.view(num_tasks, per_task)).view(batch))
 
-    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM), torch_threads_beside_physics(env):
         rollout = env.rollout(horizon, policy=act, auto_reset=True, break_when_any_done=False)
     rollout = rollout.view(num_tasks, per_task, horizon)
     rollout.set("mask", trajectory_mask(rollout["next", "done"]))

@@ -27,6 +27,7 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from umrl.envs import get_env_spec
+from umrl.envs.threads import torch_threads_beside_physics
 from umrl.runtime import save_figure
 
 __all__ = [
@@ -96,7 +97,7 @@ def evaluate_skills(
     transform = skill_transforms[0]
     transform.pin(skills)
     try:
-        with torch.no_grad(), set_exploration_type(exploration):
+        with torch.no_grad(), set_exploration_type(exploration), torch_threads_beside_physics(env):
             rollout = env.rollout(horizon, policy, break_when_any_done=False)
     finally:
         transform.pin(None)

@@ -136,6 +136,7 @@ class BatchedMujocoEnv(EnvBase):
         if num_threads is None:
             num_threads = len(os.sched_getaffinity(0))
         num_threads = max(1, min(num_threads, num_envs // _MIN_COPIES_PER_THREAD))
+        self.physics_threads = num_threads  # read by umrl.envs.threads.torch_threads_beside_physics
         # State rows [B, nstate] float64 of MuJoCo's batch; row i is written only by the thread stepping copy i.
         self._sim = mujoco.batch.Batch(m, num_envs, nthread=num_threads)
         self._state = self._sim.state
