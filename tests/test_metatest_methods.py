@@ -51,28 +51,32 @@ BASE = {"method": "scratch", "env": "point_nav", "seed": 0, "output": "x.csv"}
 
 
 @pytest.mark.parametrize("override, key, shown, accepted", [
-    ({"method": "uml"}, "method", "'uml'", "one of ['uml_diayn'"),
+    ({"method": "uml"}, "method", "'uml'", "one of 'uml_diayn'"),
+    ({"env": ""}, "env", "''", "a non-empty string"),
     ({"seed": -1}, "seed", "-1", "an integer >= 0"),
     ({"seed": 1.5}, "seed", "1.5", "an integer >= 0"),
     ({"num_tasks": 0}, "num_tasks", "0", "an integer >= 1"),
     ({"threads": True}, "threads", "True", "an integer >= 1"),
-    ({"adam_lr": 0.0}, "adam_lr", "0.0", "a positive float"),
-    ({"sgd_lr": -0.1}, "sgd_lr", "-0.1", "null (the checkpoint's inner lr) or a positive float"),
+    ({"adam_lr": 0.0}, "adam_lr", "0.0", "a finite number > 0"),
+    ({"sgd_lr": -0.1}, "sgd_lr", "-0.1", "a finite number > 0"),
+    ({"device": "gpu"}, "device", "'gpu'", "one of 'cpu', 'cuda', 'auto'"),
     ({"checkpoint": "somewhere"}, "checkpoint", "'somewhere'", "null for scratch"),
     ({"method": "oracle"}, "checkpoint", "None", "a pre-training output for 'oracle'"),
-    ({"sweep": {"lrs": []}}, "sweep.lrs", "()", "a non-empty list"),
+    ({"sweep": {"enabled": 1}}, "sweep.enabled", "1", "true or false"),
+    ({"sweep": {"lrs": []}}, "sweep.lrs", "[]", "a non-empty list of learning rates > 0"),
+    ({"sweep": {"lrs": [1e-3, 0]}}, "sweep.lrs[1]", "0", "a finite number > 0"),
     ({"sweep": {"num_steps": 0}}, "sweep.num_steps", "0", "an integer >= 1"),
 ])
 def test_cell_spec_rejects_bad_values_naming_key_value_and_accepted(override, key, shown, accepted):
-    with pytest.raises(ValueError) as err:
+    with pytest.raises((ValueError, TypeError)) as err:
         CellSpec.from_mapping({**BASE, **override})
-    assert f"cell spec '{key}': got {shown}; accepted: {accepted}" in str(err.value)
+    assert f"{key}: got {shown}; expected {accepted}" in str(err.value)
 
 
 def test_cell_spec_rejects_bad_protocol_and_unknown_keys():
-    with pytest.raises(ValueError, match=r"protocol.sgd_schedule.*\['constant', 'reference'\].*'alpha/2'"):
+    with pytest.raises(ValueError, match=r"protocol.sgd_schedule: got 'alpha/2'; expected one of 'constant', 'reference'"):
         CellSpec.from_mapping({**BASE, "protocol": {"sgd_schedule": "alpha/2"}})
-    with pytest.raises(ValueError, match=r"protocol.num_steps.*>= 0.*-1"):
+    with pytest.raises(ValueError, match=r"protocol.num_steps: got -1; expected an integer >= 0"):
         CellSpec.from_mapping({**BASE, "protocol": {"num_steps": -1}})
     with pytest.raises(ValueError, match=r"unknown keys \['protocol.steps'\].*num_steps"):
         CellSpec.from_mapping({**BASE, "protocol": {"steps": 5}})

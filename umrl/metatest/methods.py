@@ -32,7 +32,18 @@ from umrl.metatest.results import to_rows, write_rows
 from umrl.modules.policy import make_gaussian_policy
 from umrl.proposals import PROPOSALS
 from umrl.runtime import seed_everything
-from umrl.validation import DEVICES, check_choice, resolve_device
+from umrl.validation import (
+    DEVICES,
+    InvalidType,
+    InvalidValue,
+    check_bool,
+    check_choice,
+    check_int,
+    check_list,
+    check_positive,
+    check_str,
+    resolve_device,
+)
 
 #: Pre-training recipes (the MAML recipe's task proposals are :data:`umrl.proposals.PROPOSALS`).
 RECIPES = ("diayn", "maml", "vime")
@@ -166,18 +177,6 @@ def meta_test(init: Initialisation, env_name: str, tasks: torch.Tensor, *, lr: f
     return returns.cpu(), info
 
 
-def _reject(key: str, value, accepted: str) -> ValueError:
-    return ValueError(f"cell spec {key!r}: got {value!r}; accepted: {accepted}.")
-
-
-def _is_int(value) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _is_positive(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0
-
-
 @dataclass(frozen=True)
 class SweepConfig:
     """Learning-rate sweep of the Adam methods: best mean AUC over ``lrs`` on ``num_tasks`` non-evaluation tasks,
@@ -189,15 +188,11 @@ class SweepConfig:
     num_steps: int = 5
 
     def __post_init__(self):
-        object.__setattr__(self, "lrs", tuple(float(lr) for lr in self.lrs))
-        if not isinstance(self.enabled, bool):
-            raise _reject("sweep.enabled", self.enabled, "true or false")
-        if not self.lrs or not all(lr > 0 for lr in self.lrs):
-            raise _reject("sweep.lrs", self.lrs, "a non-empty list of positive learning rates")
+        check_bool("sweep.enabled", self.enabled)
+        lrs = check_list("sweep.lrs", self.lrs, check_positive, min_len=1, what="learning rates > 0")
+        object.__setattr__(self, "lrs", tuple(lrs))
         for key in ("num_tasks", "num_steps"):
-            value = getattr(self, key)
-            if not _is_int(value) or value < 1:
-                raise _reject(f"sweep.{key}", value, "an integer >= 1")
+            check_int(f"sweep.{key}", getattr(self, key), min=1)
 
 
 @dataclass(frozen=True)
@@ -238,27 +233,22 @@ class CellSpec:
     extra: Mapping = field(default_factory=dict)
 
     def __post_init__(self):
-        if self.method not in METHODS:
-            raise _reject("method", self.method, f"one of {list(METHODS)}")
-        if not isinstance(self.env, str) or not self.env:
-            raise _reject("env", self.env, "an env name")
-        if not _is_int(self.seed) or self.seed < 0:
-            raise _reject("seed", self.seed, "an integer >= 0")
+        check_choice("method", self.method, METHODS)
+        check_str("env", self.env)
+        check_int("seed", self.seed, min=0)
         for key in ("num_tasks", "skill_trajectories", "threads"):
-            if not _is_int(getattr(self, key)) or getattr(self, key) < 1:
-                raise _reject(key, getattr(self, key), "an integer >= 1")
+            check_int(key, getattr(self, key), min=1)
         check_choice("device", self.device, DEVICES)
-        if not _is_positive(self.adam_lr):
-            raise _reject("adam_lr", self.adam_lr, "a positive float")
-        if self.sgd_lr is not None and not _is_positive(self.sgd_lr):
-            raise _reject("sgd_lr", self.sgd_lr, "null (the checkpoint's inner lr) or a positive float")
+        check_positive("adam_lr", self.adam_lr)
+        if self.sgd_lr is not None:
+            check_positive("sgd_lr", self.sgd_lr)  # null: the checkpoint's inner lr
         if (self.checkpoint is None) != (METHODS[self.method].pretraining is None):
-            raise _reject("checkpoint", self.checkpoint, f"a pre-training output for {self.method!r}"
-                          if self.checkpoint is None else "null for scratch")
+            raise InvalidValue("checkpoint", self.checkpoint, f"a pre-training output for {self.method!r}"
+                               if self.checkpoint is None else "null for scratch")
         if not isinstance(self.protocol, AdaptationConfig):
-            raise _reject("protocol", self.protocol, "an AdaptationConfig")
+            raise InvalidType("protocol", self.protocol, "an AdaptationConfig")
         if not isinstance(self.sweep, SweepConfig):
-            raise _reject("sweep", self.sweep, "a SweepConfig")
+            raise InvalidType("sweep", self.sweep, "a SweepConfig")
 
     @classmethod
     def from_mapping(cls, values: Mapping) -> CellSpec:

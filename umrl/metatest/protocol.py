@@ -38,6 +38,7 @@ from umrl.objectives.policy_gradient import compute_advantages, episode_returns,
 from umrl.rollout import FunctionalPolicy, collect
 from umrl.runtime import check_finite
 from umrl.transforms.skill import SkillTransform
+from umrl.validation import check_choice, check_int
 
 OPTIMIZERS = ("sgd", "adam")
 #: SGD step-size schedules at meta-test (see :func:`sgd_lr_factor`).
@@ -78,13 +79,10 @@ class AdaptationConfig:
     sgd_schedule: str = "constant"
 
     def __post_init__(self):
-        for key, value, low in (("num_steps", self.num_steps, 0), ("num_trajectories", self.num_trajectories, 1),
-                                ("horizon", self.horizon, 1)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise ValueError(f"protocol.{key} must be an integer >= {low}, got {value!r}.")
-        if self.sgd_schedule not in SGD_SCHEDULES:
-            raise ValueError(
-                f"protocol.sgd_schedule must be one of {list(SGD_SCHEDULES)}, got {self.sgd_schedule!r}.")
+        check_int("protocol.num_steps", self.num_steps, min=0)
+        check_int("protocol.num_trajectories", self.num_trajectories, min=1)
+        check_int("protocol.horizon", self.horizon, min=1)
+        check_choice("protocol.sgd_schedule", self.sgd_schedule, SGD_SCHEDULES)
 
 
 def make_eval_env(env_name: str, tasks: torch.Tensor, num_trajectories: int, *, seed: int, horizon: int,
