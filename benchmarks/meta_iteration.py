@@ -10,7 +10,9 @@ One meta-iteration is the MAML recipe's own (``recipes.maml.build`` and ``recipe
 composed ``recipes/config/maml.yaml`` with the preset's overrides, oracle tasks): pre-update collection with θ and
 advantages, the inner adaptation (with the graph the meta-step reuses), post-update collection with every task's
 adapted parameters ("collect" = both collections and advantages), then the TRPO meta-step ("learn" = inner
-adaptation + TRPO step).
+adaptation + TRPO step). A second line splits "learn" into the recipe's ``time/`` parts: the inner adaptation, the
+surrogate and KL through it, the search direction (gradient, Hessian-vector product set-up and the conjugate-gradient
+products) and the line search, with the median number of trials.
 
 The **arithmetic floor** is the learning step's matmul FLOPs (``torch.utils.flop_counter.FlopCounterMode`` over one
 untimed warm-up step) divided by the device's matmul rate, measured in the same run (one large ``torch.mm`` at the
@@ -101,15 +103,17 @@ def main() -> None:
         flops[name] = sum(c.get_total_flops() for c in counters)
         if args.metrics:
             print(f"  {name} warm-up: {json.dumps(info)}", flush=True)
-    rows = {name: {"collect_s": [], "learn_s": []} for name in variants}
+    phases = ("inner_s", "objective_s", "direction_s", "line_search_s")
+    rows = {name: {k: [] for k in ("collect_s", "learn_s", *phases, "backtracks")} for name in variants}
     rates = []
     for _ in range(args.repeats):
         size = 4096 if device.type == "cuda" else 2048
         rates.append(matmul_rate(device, size, size, size))
         for name, variant in variants.items():
             info = variant.iteration()
-            rows[name]["collect_s"].append(info["time/collect_s"])
-            rows[name]["learn_s"].append(info["time/learn_s"])
+            for key in ("collect_s", "learn_s", *phases):
+                rows[name][key].append(info[f"time/{key}"])
+            rows[name]["backtracks"].append(info["train/backtracks"])
             print(f"  run {name}: collect {info['time/collect_s']:.2f}s  learn {info['time/learn_s']:.2f}s  "
                   f"(backtracks {info['train/backtracks']:.0f}, kl {info['train/kl']:.5f})", flush=True)
             if args.metrics:
@@ -129,6 +133,10 @@ def main() -> None:
         print(f"  {name:8s} collect {collect_s:7.2f} s  learn {learn_s:7.2f} s  learn/collect {learn_s / collect_s:5.2f}"
               f"  floor {floor:6.2f} s ({flops[name] / 1e9:,.0f} GFLOP)  learn/floor {learn_s / floor:5.2f}"
               f"  learn vs {args.task_loop[0]} {learn_s / first:5.2f}x")
+        inner, objective, direction, search, trials = (statistics.median(row[k]) for k in (*phases, "backtracks"))
+        print(f"  {'':8s} learn = inner {inner:.2f} s + objective {objective:.2f} s + direction {direction:.2f} s "
+              f"({cfg.trpo.cg_iters} CG products, {cfg.trpo.hvp} HVP) + line search {search:.2f} s "
+              f"({trials:.0f} trials)")
 
 
 if __name__ == "__main__":

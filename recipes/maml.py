@@ -20,7 +20,8 @@ Logged per iteration: ``train/`` return_pre, return_post (mean undiscounted retu
 trajectories), reward_mean/std/min/max (task rewards of the pre-update batch), kl, surrogate_before,
 improvement, backtracks, accepted, grad_norm, step_norm; ``time/`` collect_s (rollouts + advantages),
 learn_s (inner adaptation for the post-update policy + TRPO meta-step), inner_s (that adaptation alone, built
-with the graph the meta-step differentiates through),
+with the graph the meta-step differentiates through), the meta-step's parts objective_s (surrogate and KL through
+the inner step), direction_s (gradient, HVP set-up, ``trpo.cg_iters`` products) and line_search_s,
 env_steps_per_s (pre + post env steps per second of collect_s), env_steps. Checkpoints: ``<output_dir>/checkpoints/step_<iteration>.pt`` (format in :mod:`umrl.checkpoints.maml`).
 """
 from __future__ import annotations
@@ -88,6 +89,7 @@ def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPO
     reward = support["next", "reward"][support["mask"]]
     steps = 2 * support["mask"].numel()
     collect_s, learn_s = collected - start - inner_s, learned - collected + inner_s
+    phases = {"direction_s": info.pop("direction_s"), "line_search_s": info.pop("line_search_s")}
     metrics = {f"train/{k}": v for k, v in info.items()}
     metrics.update({
         "train/return_pre": episode_returns(support).mean().item(),
@@ -99,6 +101,10 @@ def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPO
         "time/collect_s": collect_s,
         "time/learn_s": learn_s,
         "time/inner_s": inner_s,
+        # the meta-step's parts: the surrogate and KL through the inner step (what TRPO's two phases leave), the
+        # search direction (gradient, HVP set-up, conjugate gradient), the line search
+        "time/objective_s": learned - collected - phases["direction_s"] - phases["line_search_s"],
+        **{f"time/{k}": v for k, v in phases.items()},
         "time/env_steps_per_s": steps / collect_s,
         "time/env_steps": float(steps),
     })

@@ -18,6 +18,13 @@ def test_meta_iteration_times_the_recipes_step_for_each_variant():
     for row in table:
         learn, floor = float(row[row.index("learn") + 1]), float(row[row.index("floor") + 1])
         assert learn > 0 and 0 < floor < learn  # the arithmetic floor bounds the measured step from below
+    parts = [line.split() for line in out.splitlines() if "learn = inner" in line]
+    assert len(parts) == 2
+    for row, learn_row in zip(parts, table):
+        seconds = [float(row[row.index(k) + 1]) for k in ("inner", "objective", "direction", "search")]
+        assert all(t >= 0 for t in seconds) and seconds[2] > 0  # ten CG products take time
+        learn = float(learn_row[learn_row.index("learn") + 1])
+        assert abs(sum(seconds) - learn) <= 0.021  # one iteration (--repeats 1): the parts add up, to print rounding
 
 
 def test_meta_iteration_counts_both_parts_of_the_learning_step(tmp_path):
