@@ -91,6 +91,23 @@ def test_outputs_and_fresh_pseudo_reward():
     assert loss(data)["loss_qvalue"] == a
 
 
+def test_one_discriminator_forward_serves_reward_and_loss():
+    loss = make_loss()
+    calls = []
+    loss.discriminator.module.register_forward_hook(lambda *_: calls.append(1))
+    out = loss(make_data())
+    assert len(calls) == 1
+    # the reward is scored on detached logits: D's gradient is the cross-entropy's alone
+    out["loss_discriminator"].backward()
+    got = [p.grad.clone() for p in loss.discriminator.parameters()]
+    loss.zero_grad()
+    data = make_data()
+    logits = loss.discriminator.module(data["next", "observation"])
+    torch.nn.functional.cross_entropy(logits, data["skill"].argmax(-1)).backward()
+    for g, p in zip(got, loss.discriminator.parameters()):
+        torch.testing.assert_close(g, p.grad)
+
+
 def test_input_not_mutated():
     loss = make_loss()
     data = make_data()

@@ -24,6 +24,7 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 
 from umrl.runtime import save_figure
+from umrl.transforms.discriminator_reward import skill_rewards
 
 __all__ = ["RewardMap", "plot_rays", "plot_territories", "pseudo_rewards", "reward_map", "reward_map_stats"]
 
@@ -39,7 +40,7 @@ def pseudo_rewards(discriminator: TensorDictModuleBase, points: torch.Tensor) ->
     device = points.device if param is None else param.device
     td = TensorDict({discriminator.in_keys[0]: points.to(device)}, batch_size=points.shape[:-1], device=device)
     logits = discriminator(td).get(discriminator.out_keys[0])
-    return (torch.log_softmax(logits, -1) + math.log(logits.shape[-1])).cpu()
+    return skill_rewards(logits).cpu()
 
 
 def square_grid(half_width: float, resolution: int) -> torch.Tensor:

@@ -19,7 +19,7 @@ from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import LossModule, SACLoss, SoftUpdate
 from torchrl.objectives.utils import ValueEstimators
 
-from umrl.transforms.discriminator_reward import DiscriminatorReward
+from umrl.transforms.discriminator_reward import skill_rewards
 
 __all__ = ["DIAYNLoss", "DIAYNUpdate", "make_diayn_optimizers"]
 
@@ -149,14 +149,6 @@ class DIAYNLoss(LossModule):
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         self.sac_loss.set_keys(**{name: getattr(self.tensor_keys, name) for name in self._SAC_KEYS})
-        # Held outside the module registry: the discriminator's weights are saved once, under "discriminator".
-        self.__dict__["_relabel"] = DiscriminatorReward(
-            self.discriminator,
-            self.num_skills,
-            observation_key=self.tensor_keys.discriminator_observation,
-            skill_key=self.tensor_keys.skill,
-            reward_key=self.tensor_keys.reward,
-        )
 
     def make_value_estimator(self, value_type: ValueEstimators = None, **hyperparams):
         """Sets SAC's value estimator (e.g. ``make_value_estimator(gamma=0.99)``)."""
@@ -170,26 +162,26 @@ class DIAYNLoss(LossModule):
         }
         return sorted(keys, key=str)
 
-    def discriminator_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
-        """Cross-entropy of D(z|s') against the true skill, and the (detached) accuracy of its argmax."""
+    def discriminator_logits(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """D's logits ``[*B, K]`` for the batch's ``discriminator_observation``, with gradients."""
         observation = tensordict.get(self.tensor_keys.discriminator_observation)
-        label = tensordict.get(self.tensor_keys.skill).argmax(-1)
         td = TensorDict({self.discriminator.in_keys[0]: observation}, batch_size=observation.shape[:-1])
-        logits = self.discriminator(td).get(self.discriminator.out_keys[0])
-        loss = torch.nn.functional.cross_entropy(logits.flatten(0, -2), label.flatten())
-        accuracy = (logits.argmax(-1) == label).float().mean().detach()
-        return loss, accuracy
+        return self.discriminator(td).get(self.discriminator.out_keys[0])
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        # One forward of D serves both its loss and the relabelled reward (the reward sees detached logits).
+        logits = self.discriminator_logits(tensordict)
+        skill = tensordict.get(self.tensor_keys.skill)
+        reward = (skill_rewards(logits.detach()) * skill).sum(-1, keepdim=True)
         data = tensordict.copy()  # shallow: the relabelled reward and SAC's td_error land on the copy only
-        self._relabel(data)
+        data.set(unravel_key(("next", self.tensor_keys.reward)), reward)
         out = self.sac_loss(data)
         if self.fixed_alpha:
             out.set("loss_alpha", torch.zeros((), device=out["loss_actor"].device))
-        loss_discriminator, accuracy = self.discriminator_loss(data)
-        out.set("loss_discriminator", loss_discriminator)
-        out.set("discriminator_accuracy", accuracy)
-        out.set("pseudo_reward", data.get(("next", self.tensor_keys.reward)).mean().detach())
+        label = skill.argmax(-1)
+        out.set("loss_discriminator", torch.nn.functional.cross_entropy(logits.flatten(0, -2), label.flatten()))
+        out.set("discriminator_accuracy", (logits.argmax(-1) == label).float().mean().detach())
+        out.set("pseudo_reward", reward.mean())
         return out
 
 #: ``torch.compile`` modes accepted by :class:`DIAYNUpdate`'s ``compile``.

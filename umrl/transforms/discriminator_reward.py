@@ -20,7 +20,15 @@ from tensordict.utils import NestedKey, unravel_key
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-__all__ = ["DiscriminatorReward"]
+__all__ = ["DiscriminatorReward", "skill_rewards"]
+
+
+def skill_rewards(logits: torch.Tensor) -> torch.Tensor:
+    """r_z = log D(z|s) - log p(z) = log_softmax(logits)[z] + log K for every skill: logits ``[*B, K]`` -> ``[*B, K]``.
+
+    Differentiable; callers that only score states pass detached logits or run it under ``torch.no_grad``.
+    """
+    return torch.log_softmax(logits, dim=-1) + math.log(logits.shape[-1])
 
 
 class DiscriminatorReward(Transform):
@@ -82,8 +90,7 @@ class DiscriminatorReward(Transform):
             batch = observation.shape[:-1]
             td = TensorDict({self.discriminator.in_keys[0]: observation}, batch_size=batch)
             logits = self.discriminator(td).get(self.discriminator.out_keys[0])
-            log_prob = torch.log_softmax(logits, dim=-1)
-            return (log_prob * skill).sum(-1, keepdim=True) + math.log(self.num_skills)
+            return (skill_rewards(logits) * skill).sum(-1, keepdim=True)
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         key = self.observation_key
