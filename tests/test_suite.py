@@ -13,6 +13,7 @@ from script_loading import compose_config, load_script
 import recipes
 from umrl.configs import ConfigError, validate
 from umrl.configs.suite import SuiteConfig
+from umrl.launch import RayLauncher, run_jobs
 from umrl.metatest import read_rows, write_rows
 
 REPO = Path(__file__).resolve().parents[1]
@@ -91,18 +92,6 @@ def test_paper_profile_runs_k100_both_schedules_independent_pretraining():
     assert suite.pretrain_seeds(quick) == [0, 0, 0] and quick.protocol.sgd_schedule == "constant"
 
 
-def test_failed_job_blocks_dependants_only():
-    def boom():
-        raise RuntimeError("no")
-
-    ran = []
-    jobs = [suite.Job("a", boom), suite.Job("b", ran.append, args=("b",), deps=("a",)),
-            suite.Job("c", ran.append, args=("c",))]
-    succeeded, failed = suite.run_jobs(jobs, suite.InlineLauncher(), log=lambda _: None)
-    assert succeeded == {"c"} and ran == ["c"]
-    assert "RuntimeError: no" in failed["a"] and "blocked" in failed["b"]
-
-
 def test_existing_cell_is_skipped(tmp_path):
     cfg = _cfg(tmp_path, "methods=[scratch]", "seeds=[0,1]", "launcher.workers=0")
     planted = [{"method": "scratch", "env": "point_nav", "seed": 0, "task": t, "step": k, "return": 123.0,
@@ -150,7 +139,7 @@ def test_ray_launcher_runs_two_cells(tmp_path):
     assert len(jobs) == 2
     ray.init(num_cpus=2, include_dashboard=False, runtime_env={"env_vars": {"WANDB_MODE": "disabled"}})
     try:
-        succeeded, failed = suite.run_jobs(jobs, suite.RayLauncher("local"), log=lambda _: None)
+        succeeded, failed = run_jobs(jobs, RayLauncher("local"), log=lambda _: None)
     finally:
         ray.shutdown()
     assert not failed and succeeded == {j.key for j in jobs}

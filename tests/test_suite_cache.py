@@ -1,15 +1,13 @@
 """The suite's cache keyed by config and code, its marker window, atomic state, validation before work and
 printed failures (benchmarks/suite.py, umrl/metatest/cache.py)."""
 import os
-import time
-from pathlib import Path
 
 import pytest
 from script_loading import compose_config, load_script
 
 import recipes
 from umrl.configs import ConfigError
-from umrl.metatest import CellSpec, read_rows
+from umrl.metatest import read_rows
 from umrl.metatest.cache import DONE_MARKER, config_key, remove_stale_tmp, source_version, write_json_atomic
 
 suite = load_script("benchmarks/suite.py")
@@ -148,41 +146,3 @@ def test_every_bad_input_is_listed_before_any_work(tmp_path):
     with pytest.raises(ConfigError, match=r"max_kll"):
         suite.run_suite(bad, log=_quiet)
     assert not (out / "pretrain").exists() and not (out / "cells").exists()
-
-
-def test_failed_job_prints_its_error_and_log_tail(tmp_path):
-    spec = CellSpec(method="uml_random", env="point_nav", seed=0, output=str(tmp_path / "cell.csv"),
-                    checkpoint=str(tmp_path / "no_such_run"))
-    job = suite.Job("cell/x", suite.run_cell, args=(spec,), what="meta-test of uml_random", log=tmp_path / "x.log")
-    launcher = suite.LocalLauncher(1, cwd=tmp_path)
-    printed = []
-    try:
-        succeeded, failed = suite.run_jobs([job], launcher, log=printed.append)
-    finally:
-        launcher.shutdown()
-    assert not succeeded and "FileNotFoundError" in failed["cell/x"]
-    text = "\n".join(printed)
-    assert "[fail] cell/x (meta-test of uml_random)" in text and "error: JobError: FileNotFoundError" in text
-    assert f"last lines of {tmp_path / 'x.log'}" in text and "| Traceback" in text  # the worker's traceback
-
-
-@pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="reads /proc/<pid>/maps")
-def test_local_workers_hold_no_shared_memory_semaphores(tmp_path):
-    """A suite killed with SIGKILL cannot clean up: the local launcher must not create named semaphores
-    (``/dev/shm/sem.mp-*``, what multiprocessing pools leave behind) at all."""
-    def semaphores(pid):
-        return {line.split()[-1] for line in Path(f"/proc/{pid}/maps").read_text().splitlines() if "sem.mp-" in line}
-
-    before = semaphores(os.getpid())
-    launcher = suite.LocalLauncher(1, cwd=tmp_path)
-    try:
-        future = launcher.submit(suite.Job("sleep", time.sleep, args=(3,)))
-        deadline = time.time() + 60
-        while not launcher.busy and time.time() < deadline:
-            time.sleep(0.05)
-        (worker,) = launcher.busy
-        assert semaphores(worker.process.pid) == set()
-        assert semaphores(os.getpid()) == before
-        future.result(timeout=120)
-    finally:
-        launcher.shutdown()
