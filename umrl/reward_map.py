@@ -20,9 +20,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 
+from umrl.modules.discriminator import discriminator_logits
 from umrl.runtime import save_figure
 from umrl.transforms.discriminator_reward import skill_rewards
 
@@ -38,9 +38,7 @@ def pseudo_rewards(discriminator: TensorDictModuleBase, points: torch.Tensor) ->
     """
     param = next(discriminator.parameters(), None)
     device = points.device if param is None else param.device
-    td = TensorDict({discriminator.in_keys[0]: points.to(device)}, batch_size=points.shape[:-1], device=device)
-    logits = discriminator(td).get(discriminator.out_keys[0])
-    return skill_rewards(logits).cpu()
+    return skill_rewards(discriminator_logits(discriminator, points.to(device))).cpu()
 
 
 def square_grid(half_width: float, resolution: int) -> torch.Tensor:

@@ -28,6 +28,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from umrl.envs import get_env_spec
 from umrl.envs.threads import torch_threads_beside_physics
+from umrl.modules.discriminator import discriminator_logits
 from umrl.runtime import save_figure
 
 __all__ = [
@@ -160,8 +161,7 @@ def coverage_metrics(result: TensorDictBase, num_skills: int, discriminator: Cal
     if discriminator is not None:
         obs = result.get("final_observation")
         with torch.no_grad():
-            td = TensorDict({discriminator.in_keys[0]: obs}, batch_size=obs.shape[:-1])
-            logits = discriminator(td).get(discriminator.out_keys[0])
+            logits = discriminator_logits(discriminator, obs)
         metrics["final_state_accuracy"] = float((logits.argmax(-1) == skills).float().mean())
     return metrics
 

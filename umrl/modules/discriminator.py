@@ -5,10 +5,11 @@ import contextlib
 from collections.abc import Sequence
 
 import torch
-from tensordict.nn import TensorDictModule
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torchrl.modules import MLP
 
-__all__ = ["DISCRIMINATOR_INITS", "make_discriminator"]
+__all__ = ["DISCRIMINATOR_INITS", "discriminator_logits", "make_discriminator"]
 
 #: ``"xavier"``: Glorot-uniform weights, zero biases, as the DIAYN reference code initialises every MLP
 #: (haarnoja/sac ``sac/misc/mlp.py``: ``tf.contrib.layers.xavier_initializer()`` weights,
@@ -73,3 +74,10 @@ def make_discriminator(
                     torch.nn.init.xavier_uniform_(layer.weight)
                     torch.nn.init.zeros_(layer.bias)
     return TensorDictModule(net, in_keys=[in_key], out_keys=[out_key])
+
+
+def discriminator_logits(discriminator: TensorDictModuleBase, observation: torch.Tensor) -> torch.Tensor:
+    """D's logits ``[*B, K]`` for observations ``[*B, obs_dim]`` (D reads one key and writes one, as
+    :func:`make_discriminator`'s module does); gradients flow unless the caller disables them."""
+    td = TensorDict({discriminator.in_keys[0]: observation}, batch_size=observation.shape[:-1])
+    return discriminator(td).get(discriminator.out_keys[0])

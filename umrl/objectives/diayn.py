@@ -10,7 +10,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.nn import CudaGraphModule, TensorDictModule, TensorDictModuleBase
 from tensordict.utils import NestedKey, unravel_key
 from torchrl._utils import compile_with_warmup
@@ -19,7 +19,8 @@ from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import LossModule, SACLoss, SoftUpdate
 from torchrl.objectives.utils import ValueEstimators
 
-from umrl.transforms.discriminator_reward import skill_rewards
+from umrl.modules.discriminator import discriminator_logits
+from umrl.transforms.discriminator_reward import skill_reward
 
 __all__ = ["DIAYNLoss", "DIAYNUpdate", "make_diayn_optimizers"]
 
@@ -162,17 +163,11 @@ class DIAYNLoss(LossModule):
         }
         return sorted(keys, key=str)
 
-    def discriminator_logits(self, tensordict: TensorDictBase) -> torch.Tensor:
-        """D's logits ``[*B, K]`` for the batch's ``discriminator_observation``, with gradients."""
-        observation = tensordict.get(self.tensor_keys.discriminator_observation)
-        td = TensorDict({self.discriminator.in_keys[0]: observation}, batch_size=observation.shape[:-1])
-        return self.discriminator(td).get(self.discriminator.out_keys[0])
-
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         # One forward of D serves both its loss and the relabelled reward (the reward sees detached logits).
-        logits = self.discriminator_logits(tensordict)
+        logits = discriminator_logits(self.discriminator, tensordict.get(self.tensor_keys.discriminator_observation))
         skill = tensordict.get(self.tensor_keys.skill)
-        reward = (skill_rewards(logits.detach()) * skill).sum(-1, keepdim=True)
+        reward = skill_reward(logits.detach(), skill)
         data = tensordict.copy()  # shallow: the relabelled reward and SAC's td_error land on the copy only
         data.set(unravel_key(("next", self.tensor_keys.reward)), reward)
         out = self.sac_loss(data)

@@ -14,13 +14,15 @@ from __future__ import annotations
 import math
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey, unravel_key
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-__all__ = ["DiscriminatorReward", "skill_rewards"]
+from umrl.modules.discriminator import discriminator_logits
+
+__all__ = ["DiscriminatorReward", "skill_reward", "skill_rewards"]
 
 
 def skill_rewards(logits: torch.Tensor) -> torch.Tensor:
@@ -29,6 +31,11 @@ def skill_rewards(logits: torch.Tensor) -> torch.Tensor:
     Differentiable; callers that only score states pass detached logits or run it under ``torch.no_grad``.
     """
     return torch.log_softmax(logits, dim=-1) + math.log(logits.shape[-1])
+
+
+def skill_reward(logits: torch.Tensor, skill: torch.Tensor) -> torch.Tensor:
+    """r_z for the given one-hot skills: logits ``[*B, K]``, skill ``[*B, K]`` -> ``[*B, 1]``."""
+    return (skill_rewards(logits) * skill).sum(-1, keepdim=True)
 
 
 class DiscriminatorReward(Transform):
@@ -87,10 +94,7 @@ class DiscriminatorReward(Transform):
         if skill.shape[-1] != self.num_skills:
             raise ValueError(f"skill has {skill.shape[-1]} entries in its last dim, expected {self.num_skills}.")
         with torch.no_grad():
-            batch = observation.shape[:-1]
-            td = TensorDict({self.discriminator.in_keys[0]: observation}, batch_size=batch)
-            logits = self.discriminator(td).get(self.discriminator.out_keys[0])
-            return (skill_rewards(logits) * skill).sum(-1, keepdim=True)
+            return skill_reward(discriminator_logits(self.discriminator, observation), skill)
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         key = self.observation_key
