@@ -31,8 +31,8 @@ Runs UML-DIAYN, UML-random, oracle, VIME-init, DIAYN-init and scratch on the cho
    (offline by default, under ``output_dir/wandb``) in one group per suite run.
 
 This file plans and reports only: the jobs run through :mod:`umrl.launch`, what a cell computes and how results are
-tabulated live in :mod:`umrl.metatest`. Jobs run as fresh worker processes (``launcher.workers`` at a time; their output goes to
-``logs/<job>.log``), in this process (``launcher.workers=0``) or as Ray tasks when ``launcher.ray_address`` is set
+tabulated live in :mod:`umrl.metatest`. Jobs run as fresh worker processes (``launcher.workers`` at a time; their
+output goes to ``logs/<job>.log``), in this process (``launcher.workers=0``) or as Ray tasks when ``launcher.ray_address`` is set
 (``local`` starts a Ray instance on this machine). The local workers are plain subprocesses (no multiprocessing
 semaphores: a suite killed with SIGKILL leaves nothing in ``/dev/shm``). A failed job is printed with its error and
 the tail of its log. Every value is a config override (``benchmarks/config/``).

@@ -105,10 +105,9 @@ class _Worker:
                                         stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                                         pass_fds=(write,))
         os.close(write)
-        self.results, self.jobs = os.fdopen(read, "rb"), 0
+        self.results = os.fdopen(read, "rb")
 
     def run(self, job: Job, log: Path):
-        self.jobs += 1
         try:
             pickle.dump((job.fn, job.args, job.kwargs, str(log)), self.process.stdin)
             self.process.stdin.flush()
