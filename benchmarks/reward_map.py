@@ -43,7 +43,7 @@ def main() -> None:
     args = parser.parse_args()
     spec = get_env_spec("point_nav")
     radius = args.radius or spec.horizon * ACTION_SCALE
-    eval_goals = spec.task_family.eval_tasks(spec.num_eval_tasks)
+    eval_goals = spec.eval_tasks()
     num_skills = args.num_skills or spec.num_skills
     discriminators = {
         f"random_{args.init}_seed{seed}": make_discriminator(spec.obs_dim, num_skills, hidden=args.hidden, seed=seed,

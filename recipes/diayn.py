@@ -13,7 +13,8 @@ Logged (namespaced): ``train/`` losses, ``discriminator_accuracy`` (on replay sa
 ``entropy``, ``episode_return`` (undiscounted pseudo-return of finished episodes); ``eval/`` on fresh rollouts of
 every skill: ``final_state_accuracy`` (argmax D(z|s_T) == z), spread of the skills' end points
 (``end_pairwise_distance``, ``centroid_pairwise_distance``, ``centroid_hull_area`` in 2-D, ``centroid_std``/``range``
-for half_cheetah's velocities), the same for a uniformly random policy under ``eval/random_*`` (once);
+for half_cheetah's velocities), ``task_distance_median``/``max`` (from each held-out evaluation task to the nearest
+skill centroid), the same for a uniformly random policy under ``eval/random_*`` (once);
 ``time/`` env steps/s, updates/s, elapsed seconds. The coverage figure goes to ``<output_dir>/figures/``.
 
 Checkpoints: ``<output_dir>/checkpoints/step_<frames>.pt`` every ``checkpoint.every`` frames and at the end, format
@@ -85,9 +86,8 @@ def evaluate(cfg, env, actor, discriminator, num_skills, step, figure_path, logg
     with isolated_rng():
         result = evaluate_skills(env, actor, env_name=cfg.env.name, num_skills=num_skills,
                                  episodes_per_skill=cfg.eval.episodes_per_skill, horizon=cfg.env.horizon)
-    metrics = {f"eval/{k}": v for k, v in coverage_metrics(result, num_skills, discriminator).items()}
-    spec = get_env_spec(cfg.env.name)
-    eval_tasks = spec.task_family.eval_tasks(spec.num_eval_tasks)
+    eval_tasks = get_env_spec(cfg.env.name).eval_tasks()
+    metrics = {f"eval/{k}": v for k, v in coverage_metrics(result, num_skills, discriminator, eval_tasks).items()}
     figure = plot_coverage(result["end_point"], figure_path, eval_tasks=eval_tasks, skills=result["skill"],
                            baseline=baseline["end_point"],
                            title=f"DIAYN {cfg.env.name}, {num_skills} skills, {step} env steps")
@@ -170,7 +170,8 @@ def train(cfg: DictConfig) -> dict:
     with isolated_rng():
         baseline = evaluate_skills(eval_env, None, env_name=cfg.env.name, num_skills=num_skills,
                                    episodes_per_skill=cfg.eval.episodes_per_skill, horizon=cfg.env.horizon)
-    random_metrics = {f"eval/random_{k}": v for k, v in coverage_metrics(baseline, num_skills, discriminator).items()}
+    random_metrics = {f"eval/random_{k}": v for k, v in coverage_metrics(
+        baseline, num_skills, discriminator, get_env_spec(cfg.env.name).eval_tasks()).items()}
     log_metrics(logger, random_metrics, counters["frames"])
     if state is not None:  # after everything that draws while setting up: the loop starts where the saved one stood
         load_replay_buffer_state(buffer, state["replay"])

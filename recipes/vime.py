@@ -237,7 +237,7 @@ def train(cfg: DictConfig) -> dict:
     if initial_states is not None:  # also on a resumed run
         spec = get_env_spec(cfg.env.name)
         plot_coverage(visited_states(batch, cfg.env.name), out_dir / "figures" / "coverage.png",
-                      eval_tasks=spec.task_family.eval_tasks(spec.num_eval_tasks),
+                      eval_tasks=spec.eval_tasks(),
                       baseline=initial_states, label="VIME policy",
                       baseline_label="initial policy", title=f"VIME {cfg.env.name}: visited states")
     env.close()

@@ -39,3 +39,25 @@ def test_meta_iteration_counts_both_parts_of_the_learning_step(tmp_path):
     variant.iteration(counters)
     assert len(counters) == 2 and all(c.get_total_flops() > 0 for c in counters)
     assert counters[1].get_total_flops() > counters[0].get_total_flops()  # CG and line search outweigh one adaptation
+
+
+def test_skill_coverage_evaluates_a_checkpoint_at_each_horizon_beside_a_random_policy(tiny_diayn_checkpoint, tmp_path):
+    from umrl.envs import get_env_spec
+
+    directory, _ = tiny_diayn_checkpoint
+    command = [sys.executable, str(REPO / "benchmarks" / "skill_coverage.py"), str(directory), "--horizons", "5",
+               "20", "--episodes", "2", "--out", str(tmp_path / "figures")]
+    out = subprocess.run(command, capture_output=True, text=True, timeout=300, check=True, cwd=REPO).stdout
+    assert subprocess.run(command, capture_output=True, text=True, timeout=300, check=True, cwd=REPO).stdout == out
+    rows = {(r[1], r[2]): [float(x) for x in r[3:8]] for r in (line.split() for line in out.splitlines())
+            if r and r[0] == "diayn_step_1"}
+    assert set(rows) == {(h, p) for h in ("5", "20") for p in ("skills", "random")}
+    for values in rows.values():
+        accuracy, _, _, task_median, task_max = values
+        assert 0 <= accuracy <= 1 and 0 <= task_median <= task_max
+    assert rows["20", "skills"] != rows["20", "random"]  # the trained actor is the one rolled out
+    tasks = get_env_spec("point_nav").eval_tasks()
+    low, high = tasks.min(0).values.tolist(), tasks.max(0).values.tolist()
+    assert f"[{low[0]:.2f}, {high[0]:.2f}] [{low[1]:.2f}, {high[1]:.2f}]" in out
+    for horizon in (5, 20):
+        assert (tmp_path / "figures" / f"diayn_step_1_h{horizon}.png").stat().st_size > 1000

@@ -89,5 +89,11 @@ def test_coverage_metrics_on_known_points():
     result.set("skill", torch.tensor([0, 1, 0, 1]))
     metrics = coverage_metrics(result, 2)
     assert metrics["centroid_hull_area"] == 0.0 and metrics["centroid_pairwise_distance"] > 0
+    assert "task_distance_median" not in metrics
+    # centroids: skill 0 (2, 3) and (16, 17) -> (9, 10); skill 1 (10, 11) and (22, 23) -> (16, 17)
+    tasks = torch.tensor([[9.0, 13.0], [16.0, 17.0], [0.0, 10.0]])  # nearest centroid 3, 0 and 9 away
+    metrics = coverage_metrics(result, 2, eval_tasks=tasks)
+    assert metrics["task_distance_median"] == pytest.approx(3.0)
+    assert metrics["task_distance_max"] == pytest.approx(9.0)
     velocity = TensorDict({"next": {"done": done, "x_velocity": position[..., :1], "observation": position}}, [4, 3])
     torch.testing.assert_close(final_states(velocity, "half_cheetah")["end_point"][0], position[0, :2, :1].mean(0))

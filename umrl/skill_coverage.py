@@ -136,13 +136,16 @@ def _mean_pairwise_distance(points: torch.Tensor) -> float:
     return float(distances.sum() / (n * (n - 1)))
 
 
-def coverage_metrics(result: TensorDictBase, num_skills: int, discriminator: Callable | None = None) -> dict:
+def coverage_metrics(result: TensorDictBase, num_skills: int, discriminator: Callable | None = None,
+                     eval_tasks: torch.Tensor | None = None) -> dict:
     """Scalars from :func:`evaluate_skills`' output.
 
     Keys: ``end_pairwise_distance`` (all rollouts), ``centroid_pairwise_distance`` (per-skill mean end points),
     ``centroid_hull_area`` (2-D) or ``centroid_std`` / ``centroid_range`` (1-D), ``within_skill_std`` (mean over
-    skills of the end points' std), and with a ``discriminator`` (a TensorDictModule over the observation) the
-    ``final_state_accuracy`` of argmax D(z|s_T).
+    skills of the end points' std), with a ``discriminator`` (a TensorDictModule over the observation) the
+    ``final_state_accuracy`` of argmax D(z|s_T), and with ``eval_tasks`` ``[M, d]`` (the held-out tasks in the
+    coverage coordinates: goals, target velocities) ``task_distance_median`` / ``task_distance_max``: over the
+    tasks, the distance from each to the nearest skill centroid (how well the skills cover the evaluation tasks).
     """
     end = result.get("end_point").float()
     skills = result.get("skill")
@@ -163,6 +166,10 @@ def coverage_metrics(result: TensorDictBase, num_skills: int, discriminator: Cal
         with torch.no_grad():
             logits = discriminator_logits(discriminator, obs)
         metrics["final_state_accuracy"] = float((logits.argmax(-1) == skills).float().mean())
+    if eval_tasks is not None:
+        nearest = torch.cdist(eval_tasks.double().to(centroids.device), centroids.double()).min(-1).values
+        metrics["task_distance_median"] = float(nearest.median())
+        metrics["task_distance_max"] = float(nearest.max())
     return metrics
 
 

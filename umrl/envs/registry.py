@@ -43,7 +43,7 @@ class EnvSpec:
         coverage_cell: grid cell side for VIME's state-coverage counts of a 2-D :attr:`coverage_key`; ``None`` for
             1-D coverage (velocity ranges).
         horizon: default episode length.
-        num_eval_tasks: held-out evaluation tasks (``task_family.eval_tasks(num_eval_tasks)``).
+        num_eval_tasks: how many held-out evaluation tasks :meth:`eval_tasks` returns.
     """
 
     name: str
@@ -77,6 +77,11 @@ class EnvSpec:
                              f"{self.physics_keys[self.coverage_key]} key).")
         if self.task_family.env_name != self.name:
             raise ValueError(f"EnvSpec {self.name!r} carries the task family of {self.task_family.env_name!r}.")
+
+    def eval_tasks(self):
+        """The held-out evaluation tasks, ``task_family.eval_tasks(num_eval_tasks)``: a fixed ``[num_eval_tasks,
+        task_dim]`` tensor (goals, target velocities) in the coordinates of :attr:`coverage_key`."""
+        return self.task_family.eval_tasks(self.num_eval_tasks)
 
 
 _REGISTRY: dict[str, EnvSpec] = {}
