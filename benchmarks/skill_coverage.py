@@ -52,16 +52,17 @@ def main() -> None:
         raise SystemExit(f"--horizons and --episodes must be positive, got {args.horizons} and {args.episodes}.")
     torch.set_num_threads(1)  # as the recipes evaluate: one torch thread beside the physics
 
-    print(f"{'run':<28}{'horizon':>8} {'policy':<8}" + "".join(f"{c:>{WIDTH}}" for c in COLUMNS.values())
+    files = [resolve_checkpoint(path) for path in args.checkpoints]
+    runs = [f"{file.parent.parent.name}_{file.stem}" for file in files]
+    run_width = max(len(run) for run in runs) + 2
+    print(f"{'run':<{run_width}}{'horizon':>8} {'policy':<8}" + "".join(f"{c:>{WIDTH}}" for c in COLUMNS.values())
           + "  centroid range")
-    for path in args.checkpoints:
+    for path, run in zip(files, runs):
         env_name = load_diayn_checkpoint(path)["meta"]["env"]
         actor, num_skills, _ = load_skill_policy(path)
         discriminator, _, _ = load_discriminator(path)
         spec = get_env_spec(env_name)
         eval_tasks = spec.eval_tasks()
-        file = resolve_checkpoint(path)
-        run = f"{file.parent.parent.name}_{file.stem}"
         for horizon in args.horizons:
             results = {}
             for label, policy in (("skills", actor), ("random", None)):
@@ -72,13 +73,14 @@ def main() -> None:
                                                  episodes_per_skill=args.episodes, horizon=horizon)
                 env.close()
                 metrics = coverage_metrics(results[label], num_skills, discriminator, eval_tasks)
-                print(f"{run:<28}{horizon:>8} {label:<8}" + "".join(f"{metrics[c]:>{WIDTH}.3f}" for c in COLUMNS)
-                      + f"  {_ranges(_centroids(results[label]))}")
+                values = "".join(f"{metrics[c]:>{WIDTH}.3f}" for c in COLUMNS)
+                print(f"{run:<{run_width}}{horizon:>8} {label:<8}{values}  {_ranges(_centroids(results[label]))}")
             figure = plot_coverage(results["skills"]["end_point"], Path(args.out) / f"{run}_h{horizon}.png",
                                    eval_tasks=eval_tasks, skills=results["skills"]["skill"],
                                    baseline=results["random"]["end_point"],
                                    title=f"DIAYN {env_name} ({run}), {num_skills} skills, horizon {horizon}")
-            print(f"{'':<28}{'':>8} {'tasks':<8}{'':>{WIDTH * len(COLUMNS)}}  {_ranges(eval_tasks)}   figure: {figure}")
+            blank = " " * (run_width + 9 + WIDTH * len(COLUMNS))
+            print(f"{blank}{'tasks':<8}  {_ranges(eval_tasks)}   figure: {figure}")
 
 
 if __name__ == "__main__":
