@@ -27,12 +27,15 @@ from umrl.transforms.skill import SkillTransform
 
 # coverage_metrics key -> column header
 COLUMNS = {"final_state_accuracy": "accuracy", "centroid_pairwise_distance": "centroid dist",
-           "within_skill_std": "within std", "task_distance_median": "task dist med", "task_distance_max": "task dist max"}
+           "within_skill_std": "within std", "task_distance_median": "task dist med",
+           "task_distance_max": "task dist max"}
 WIDTH = 15
 
 
 def _ranges(points: torch.Tensor) -> str:
-    return " ".join(f"[{lo:.2f}, {hi:.2f}]" for lo, hi in zip(points.min(0).values.tolist(), points.max(0).values.tolist()))
+    """``[min, max]`` of each coordinate of ``points`` [N, d]."""
+    low, high = points.min(0).values.tolist(), points.max(0).values.tolist()
+    return " ".join(f"[{lo:.2f}, {hi:.2f}]" for lo, hi in zip(low, high))
 
 
 def _centroids(result) -> torch.Tensor:
