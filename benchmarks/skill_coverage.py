@@ -22,7 +22,7 @@ import torch
 from umrl.checkpoints import load_diayn_checkpoint, load_discriminator, load_skill_policy
 from umrl.envs import get_env_spec, make_env
 from umrl.runtime import resolve_checkpoint, seed_everything
-from umrl.skill_coverage import coverage_metrics, evaluate_skills, plot_coverage
+from umrl.skill_coverage import coverage_metrics, evaluate_skills, plot_coverage, skill_centroids
 from umrl.transforms.skill import SkillTransform
 
 # coverage_metrics key -> column header
@@ -36,11 +36,6 @@ def _ranges(points: torch.Tensor) -> str:
     """``[min, max]`` of each coordinate of ``points`` [N, d]."""
     low, high = points.min(0).values.tolist(), points.max(0).values.tolist()
     return " ".join(f"[{lo:.2f}, {hi:.2f}]" for lo, hi in zip(low, high))
-
-
-def _centroids(result) -> torch.Tensor:
-    skills, end = result["skill"], result["end_point"].float()
-    return torch.stack([end[skills == k].mean(0) for k in range(int(skills.max()) + 1)])
 
 
 def main() -> None:
@@ -77,7 +72,8 @@ def main() -> None:
                 env.close()
                 metrics = coverage_metrics(results[label], num_skills, discriminator, eval_tasks)
                 values = "".join(f"{metrics[c]:>{WIDTH}.3f}" for c in COLUMNS)
-                print(f"{run:<{run_width}}{horizon:>8} {label:<8}{values}  {_ranges(_centroids(results[label]))}")
+                centroids = skill_centroids(results[label]["end_point"].float(), results[label]["skill"], num_skills)
+                print(f"{run:<{run_width}}{horizon:>8} {label:<8}{values}  {_ranges(centroids)}")
             figure = plot_coverage(results["skills"]["end_point"], Path(args.out) / f"{run}_h{horizon}.png",
                                    eval_tasks=eval_tasks, skills=results["skills"]["skill"],
                                    baseline=results["random"]["end_point"],

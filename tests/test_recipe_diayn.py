@@ -90,6 +90,8 @@ def test_coverage_metrics_on_known_points():
     metrics = coverage_metrics(result, 2)
     assert metrics["centroid_hull_area"] == 0.0 and metrics["centroid_pairwise_distance"] > 0
     assert "task_distance_median" not in metrics
+    # per-skill std of the end points: (7, 7) for skill 0 and (6, 6) for skill 1, their norms averaged
+    assert metrics["within_skill_std"] == pytest.approx((7 + 6) * 2**0.5 / 2)
     # centroids: skill 0 (2, 3) and (16, 17) -> (9, 10); skill 1 (10, 11) and (22, 23) -> (16, 17)
     tasks = torch.tensor([[9.0, 13.0], [16.0, 17.0], [0.0, 10.0]])  # nearest centroid 3, 0 and 9 away
     metrics = coverage_metrics(result, 2, eval_tasks=tasks)

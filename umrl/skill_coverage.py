@@ -38,6 +38,7 @@ __all__ = [
     "evaluate_skills",
     "final_states",
     "plot_coverage",
+    "skill_centroids",
     "state_coverage",
     "visited_states",
 ]
@@ -128,6 +129,13 @@ def convex_hull_area(points: torch.Tensor) -> float:
     return 0.5 * abs(sum(a[0] * b[1] - b[0] * a[1] for a, b in zip(hull, hull[1:] + hull[:1])))
 
 
+def skill_centroids(points: torch.Tensor, skills: torch.Tensor, num_skills: int) -> torch.Tensor:
+    """Per-skill mean of ``points`` ``[N, d]`` grouped by ``skills`` ``[N]`` (long, in ``[0, num_skills)``):
+    ``[num_skills, d]``, NaN for a skill without points."""
+    counts = torch.bincount(skills, minlength=num_skills).unsqueeze(-1).to(points.dtype)
+    return points.new_zeros(num_skills, points.shape[-1]).index_add_(0, skills, points) / counts
+
+
 def _mean_pairwise_distance(points: torch.Tensor) -> float:
     if points.shape[0] < 2:
         return 0.0
@@ -149,8 +157,9 @@ def coverage_metrics(result: TensorDictBase, num_skills: int, discriminator: Cal
     """
     end = result.get("end_point").float()
     skills = result.get("skill")
-    centroids = torch.stack([end[skills == k].mean(0) for k in range(num_skills)])
-    spread = torch.stack([end[skills == k].std(0, unbiased=False).norm() for k in range(num_skills)])
+    centroids = skill_centroids(end, skills, num_skills)
+    # per skill, the norm of the end points' (population) std over the coordinates
+    spread = skill_centroids((end - centroids[skills]).square(), skills, num_skills).sqrt().norm(dim=-1)
     metrics = {
         "end_pairwise_distance": _mean_pairwise_distance(end),
         "centroid_pairwise_distance": _mean_pairwise_distance(centroids),
@@ -252,7 +261,7 @@ def plot_coverage(
             num_skills = int(skills.max()) + 1
             colors = plt.get_cmap("hsv")(torch.linspace(0, 1, num_skills + 1)[:-1].numpy())
             ax.scatter(end[:, 0], end[:, 1], s=8, c=colors[skills.numpy()], alpha=0.6)
-            centroids = torch.stack([end[skills == k].mean(0) for k in range(num_skills)])
+            centroids = skill_centroids(end, skills, num_skills)
             ax.scatter(centroids[:, 0], centroids[:, 1], s=40, c=colors, edgecolors="k", label=f"{label} centroids")
         else:
             ax.scatter(end[:, 0], end[:, 1], s=4, c="tab:red", alpha=0.4, label=label)
