@@ -20,12 +20,15 @@ configured thread count before every round of iterations, median); ``learn / flo
 bound. Each ``--task-loop`` variant (``batched``: one batched matmul per layer for all tasks; ``loop``: a Python loop
 over tasks; ``vmap``) gets its own policy from the same seed, so all variants do the same work; their iterations are
 interleaved and the medians of ``--repeats`` runs are printed with same-run ratios. ``--metrics`` prints every
-iteration's TRPO numbers in full precision (same seed, same numbers: compare before/after a change).
+iteration's TRPO numbers in full precision (same seed, same numbers: compare before/after a change). ``--heap
+release`` runs with glibc's default malloc instead of keeping freed memory (``umrl.heap``); the header line prints
+the process's peak resident memory for the comparison.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import resource
 import statistics
 
 import torch
@@ -35,6 +38,7 @@ from recipes import compose
 from recipes.maml import build, meta_iteration
 from umrl.configs import validate
 from umrl.configs.maml import MAMLConfig
+from umrl.heap import keep_freed_memory
 from umrl.profiling import matmul_rate
 from umrl.runtime import rng_state, seed_everything, set_rng_state
 
@@ -86,12 +90,16 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--metrics", action="store_true", help="print each iteration's TRPO numbers in full")
+    parser.add_argument("--heap", default="keep", choices=["keep", "release"],
+                        help="keep: freed memory stays in the process for reuse, as the recipes run "
+                             "(umrl.heap.keep_freed_memory); release: glibc's default")
     args = parser.parse_args()
     overrides = [*PRESETS[args.preset], "proposal=oracle", "logger.backend=none", f"seed={args.seed}",
                  f"device={args.device}", f"num_threads={args.threads}", f"trpo.hvp_fraction={args.hvp_fraction}"]
     overrides += [f"meta_batch_size={args.tasks}"] * (args.tasks is not None)
     overrides += [f"trajectories_per_task={args.trajectories}"] * (args.trajectories is not None)
     torch.set_num_threads(args.threads)
+    heap = "kept" if args.heap == "keep" and keep_freed_memory() else "glibc default"
 
     variants = {name: Variant([*overrides, f"maml.task_loop={TASK_LOOP[name]}"]) for name in args.task_loop}
     cfg = next(iter(variants.values())).cfg
@@ -124,7 +132,8 @@ def main() -> None:
     print(f"\n{args.preset}: {cfg.env.name} {proposal.num_tasks} tasks x {proposal.trajectories_per_task} traj x "
           f"{cfg.env.horizon} steps ({steps} env steps pre + post), hidden {list(cfg.policy.hidden)}, inner lr "
           f"{cfg.maml.inner_lr}, hvp_fraction {cfg.trpo.hvp_fraction}, {device}, {args.threads} thread(s), median of "
-          f"{args.repeats}; matmul rate {rate / 1e9:,.1f} GFLOP/s")
+          f"{args.repeats}; matmul rate {rate / 1e9:,.1f} GFLOP/s; heap {heap}, peak RSS "
+          f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB")
     first = None
     for name, row in rows.items():
         collect_s, learn_s = statistics.median(row["collect_s"]), statistics.median(row["learn_s"])

@@ -41,6 +41,7 @@ from umrl.configs import RESUME_ALLOW, check_resume, validate
 from umrl.configs.diayn import DIAYNConfig
 from umrl.envs import get_env_spec, make_env
 from umrl.envs.threads import batches_beside_physics
+from umrl.heap import keep_freed_memory
 from umrl.modules.discriminator import make_discriminator
 from umrl.modules.sac import make_skill_actor, make_skill_qvalue
 from umrl.objectives.diayn import DIAYNLoss, DIAYNUpdate, make_diayn_optimizers
@@ -108,6 +109,7 @@ def train(cfg: DictConfig) -> dict:
     cfg = validate(cfg, DIAYNConfig)
     num_skills = resolve_num_skills(cfg)
     torch.set_num_threads(cfg.num_threads)
+    keep_freed_memory()
     seed_everything(cfg.seed)
     device = torch.device(resolve_device("device", cfg.device))  # networks, loss, replay storage and envs
     out_dir = Path(cfg.output_dir)

@@ -38,6 +38,7 @@ from omegaconf import DictConfig
 from umrl.checkpoints import MAML_FORMAT, save_maml_checkpoint
 from umrl.configs import check_resume, validate
 from umrl.configs.maml import MAMLConfig
+from umrl.heap import keep_freed_memory
 from umrl.modules.policy import make_gaussian_policy
 from umrl.objectives.maml import MAMLLoss
 from umrl.objectives.policy_gradient import compute_advantages, episode_returns
@@ -158,6 +159,7 @@ def train(cfg: DictConfig) -> dict:
     uninterrupted one; a config that differs from the checkpoint's beyond ``umrl.configs.RESUME_ALLOW`` is refused."""
     cfg = validate(cfg, MAMLConfig)
     torch.set_num_threads(cfg.num_threads)
+    keep_freed_memory()
     generator = seed_everything(cfg.seed)
     out_dir = Path(cfg.output_dir)
     checkpointer = Checkpointer(out_dir / "checkpoints", keep_all=cfg.checkpoint.keep_all)

@@ -43,6 +43,7 @@ from umrl.checkpoints import VIME_FORMAT, save_vime_checkpoint
 from umrl.configs import check_resume, validate
 from umrl.configs.vime import VIMEConfig
 from umrl.envs import get_env_spec, make_env
+from umrl.heap import keep_freed_memory
 from umrl.modules.bnn import BayesianDynamics
 from umrl.modules.policy import make_gaussian_policy
 from umrl.objectives.maml import MAMLLoss
@@ -110,6 +111,7 @@ def train(cfg: DictConfig) -> dict:
     ``umrl.configs.RESUME_ALLOW`` is refused."""
     cfg = validate(cfg, VIMEConfig)
     torch.set_num_threads(cfg.num_threads)
+    keep_freed_memory()
     seed_everything(cfg.seed)
     device = torch.device(resolve_device("device", cfg.device))  # networks, replay storage, env outputs
     out_dir = Path(cfg.output_dir)
