@@ -100,6 +100,7 @@ NO_GPU = pytest.mark.skipif(torch.cuda.is_available(), reason="device=cuda is va
     pytest.param("maml", ["device=cuda"], "device: got 'cuda' (no CUDA device is available on this machine); "
                  "expected one of 'cpu', 'auto'", marks=NO_GPU),
     ("maml", ["iterations=-5"], "iterations: got -5; expected an integer >= 1"),
+    ("maml", ["compile=true"], "compile: got True (torch.compile cannot differentiate a compiled graph twice"),
     ("vime", ["coverage.cell_size=0"], "coverage.cell_size: got 0; expected null or a finite number > 0"),
     ("suite", ["launcher.workers=-1"], "launcher.workers: got -1; expected an integer >= 0"),
     ("maml", ["maml.inner_lr=nan"], "maml.inner_lr: got nan; expected a finite number > 0"),

@@ -16,6 +16,12 @@ from umrl.configs.validate import boolean, choice, group, integer, number, strin
 from umrl.proposals import PROPOSALS
 from umrl.validation import InvalidValue, check_path_exists
 
+COMPILE_UNSUPPORTED = (
+    "torch.compile cannot differentiate a compiled graph twice, and MAML's meta-gradient and KL Hessian-vector "
+    "products are second derivatives through the inner step"
+)
+"""Why ``compile=true`` is refused."""
+
 HVP_MODES = ("gauss_newton", "exact")
 """``trpo.hvp``: ``gauss_newton`` (J^T F J through the inner step) or ``exact`` (the KL's Hessian)."""
 
@@ -68,15 +74,18 @@ class MAMLConfig(RunConfig):
     advantage: AdvantageConfig = group(AdvantageConfig)
     trpo: MetaTRPOConfig = group(MetaTRPOConfig)
     checkpoint: CheckpointConfig = group(CheckpointConfig)
+    compile: bool = boolean()
 
     @staticmethod
     def cross_check(cfg: dict) -> list[str]:
-        """``proposal=diayn`` needs an existing ``diayn_checkpoint``."""
-        if cfg["proposal"] != "diayn":
-            return []
-        try:
-            check_path_exists("diayn_checkpoint", cfg["diayn_checkpoint"])
-        except InvalidValue as e:
-            e.expected += " (a DIAYN run directory or step_*.pt file: proposal=diayn needs it)"
-            return [e.message()]
-        return []
+        """``proposal=diayn`` needs an existing ``diayn_checkpoint``; ``compile`` must be false."""
+        errors = []
+        if cfg["compile"]:
+            errors.append(InvalidValue("compile", True, "false (set compile=false)", COMPILE_UNSUPPORTED).message())
+        if cfg["proposal"] == "diayn":
+            try:
+                check_path_exists("diayn_checkpoint", cfg["diayn_checkpoint"])
+            except InvalidValue as e:
+                e.expected += " (a DIAYN run directory or step_*.pt file: proposal=diayn needs it)"
+                errors.append(e.message())
+        return errors

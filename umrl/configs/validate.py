@@ -200,6 +200,7 @@ RESUME_ALLOW = (
     "device",
     "optim.compile",
     "optim.cudagraphs",
+    "compile",
     "iterations",
     "collector.total_frames",
     "checkpoint.every",
@@ -210,7 +211,7 @@ RESUME_ALLOW = (
     "output_dir",
 )
 """Keys that may change when a run resumes: where and how it computes (``device``: checkpoints load on any device;
-DIAYN's ``optim.compile`` / ``optim.cudagraphs``), the total budget (``iterations``, ``collector.total_frames``), how
+DIAYN's ``optim.compile`` / ``optim.cudagraphs``, MAML's ``compile``), the total budget (``iterations``, ``collector.total_frames``), how
 often checkpoints are written and kept, logging, the progress bar, ``resume`` itself and ``output_dir`` (a moved run).
 Every other key (seed, env, widths, skill counts, learning rates, TRPO settings...) must match the
 checkpoint's saved config: changing it would silently continue a different run. An entry covers its sub-keys."""
