@@ -119,9 +119,11 @@ def train(cfg: DictConfig) -> dict:
     env_spec = get_env_spec(cfg.env.name)
     obs_dim, act_dim = env_spec.obs_dim, env_spec.act_dim
     hidden, disc_hidden = list(cfg.network.hidden), list(cfg.network.discriminator_hidden)
+    disc_dims = None if cfg.network.discriminator_input_dims is None else list(cfg.network.discriminator_input_dims)
     meta = {"env": cfg.env.name, "obs_dim": obs_dim, "act_dim": act_dim, "num_skills": num_skills,
             "hidden": hidden, "discriminator_hidden": disc_hidden,
-            "discriminator_observation_key": ["next", "observation"]}
+            "discriminator_observation_key": ["next", "observation"],
+            "discriminator_input_dims": disc_dims}
     # FileNotFoundError says what is missing; ConfigError lists changed keys; ValueError if format or meta differ
     # the collector restarts its episodes at every checkpoint: a changed checkpoint.every would continue another run
     allow = [key for key in RESUME_ALLOW if key != "checkpoint.every"]
@@ -129,7 +131,8 @@ def train(cfg: DictConfig) -> dict:
              if cfg.resume else None)
     # initialised on the CPU (the same weights on every device), then moved before the loss copies their parameters
     actor = make_skill_actor(obs_dim, num_skills, act_dim, hidden=hidden).to(device)
-    discriminator = make_discriminator(obs_dim, num_skills, hidden=disc_hidden).to(device)
+    discriminator = make_discriminator(obs_dim, num_skills, hidden=disc_hidden,
+                                       input_dims=disc_dims).to(device)
     qvalue = make_skill_qvalue(obs_dim, num_skills, act_dim, hidden=hidden).to(device)
     loss = DIAYNLoss(actor, qvalue, discriminator, num_skills=num_skills, alpha_init=cfg.optim.alpha,
                      fixed_alpha=cfg.optim.fixed_alpha, target_entropy=-float(act_dim)).to(device)

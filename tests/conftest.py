@@ -26,7 +26,8 @@ def tiny_diayn_checkpoint(tmp_path):
     torch.manual_seed(0)
     actor = make_skill_actor(2, 4, 2, hidden=(16,))
     meta = {"env": "point_nav", "obs_dim": 2, "act_dim": 2, "num_skills": 4, "hidden": [16],
-            "discriminator_hidden": [16], "discriminator_observation_key": ["next", "observation"]}
+            "discriminator_hidden": [16], "discriminator_observation_key": ["next", "observation"],
+            "discriminator_input_dims": None}
     DIAYN_FORMAT.save(Checkpointer(directory / "checkpoints"), 1, meta, discriminator=discriminator.state_dict(),
                       actor=actor.state_dict())
     return directory, discriminator

@@ -97,6 +97,8 @@ NO_GPU = pytest.mark.skipif(torch.cuda.is_available(), reason="device=cuda is va
 @pytest.mark.parametrize("name,overrides,line", [
     # silent before: ran with a default, ignored the value or did nothing
     ("diayn", ["num_skills=0"], "num_skills: got 0; expected null or an integer >= 2"),
+    ("diayn", ["network.discriminator_input_dims=[0,2]"],
+     "network.discriminator_input_dims: got [0, 2]; expected null or distinct integers < 2 (point_nav's obs_dim)"),
     pytest.param("maml", ["device=cuda"], "device: got 'cuda' (no CUDA device is available on this machine); "
                  "expected one of 'cpu', 'auto'", marks=NO_GPU),
     ("maml", ["iterations=-5"], "iterations: got -5; expected an integer >= 1"),

@@ -6,7 +6,7 @@ import torch
 from torchrl.envs.utils import check_env_specs
 
 from umrl.envs import make_env
-from umrl.modules.discriminator import make_discriminator
+from umrl.modules.discriminator import discriminator_logits, make_discriminator
 from umrl.transforms.discriminator_reward import DiscriminatorReward
 from umrl.transforms.skill import SkillTransform
 
@@ -112,3 +112,22 @@ def test_default_init_is_the_reference_xavier_uniform_with_zero_biases():
     assert all(torch.count_nonzero(m.bias) > 0 for m in torch_layers)  # the other choice really differs
     with pytest.raises(ValueError, match="init must be one of .*'kaiming'"):
         make_discriminator(2, 50, init="kaiming")
+
+
+def test_input_dims_discriminator_reads_only_those_dims():
+    disc = make_discriminator(5, K, hidden=(16,), seed=0, input_dims=[3, 1])
+    obs = torch.randn(7, 5)
+    changed = obs.clone()
+    changed[:, [0, 2, 4]] = torch.randn(7, 3)  # the dims it does not read
+    logits = discriminator_logits(disc, obs)
+    torch.testing.assert_close(discriminator_logits(disc, changed), logits, rtol=0, atol=0)
+    same_net = disc.module[1]  # the MLP behind the selection, fed the chosen dims by hand
+    torch.testing.assert_close(same_net(obs[:, [3, 1]]), logits, rtol=0, atol=0)
+    assert not torch.equal(discriminator_logits(disc, obs[:, [1, 0, 2, 3, 4]]), logits)  # dim 1 and 3 matter
+    assert disc.module[1][0].in_features == 2
+
+
+@pytest.mark.parametrize("dims", [[], [5], [-1], [1, 1]])
+def test_input_dims_are_checked(dims):
+    with pytest.raises(ValueError, match=r"input_dims must be distinct observation dims in \[0, 5\)"):
+        make_discriminator(5, K, input_dims=dims)

@@ -60,6 +60,21 @@ def test_run_checkpoint_resume_figure(tmp_path, env_name):
     assert not any(p.requires_grad for p in discriminator.parameters())
 
 
+def test_discriminator_on_chosen_observation_dims(tmp_path):
+    """network.discriminator_input_dims (DIAYN's "prior" ablation): the trained and the reloaded D read only them."""
+    recipe = load_recipe()
+    recipe.train(tiny_config(tmp_path, "env.name=half_cheetah", "network.discriminator_input_dims=[8]"))
+    state = load_diayn_checkpoint(tmp_path)
+    assert state["meta"]["discriminator_input_dims"] == [8]
+    discriminator, _, obs_dim = load_discriminator(tmp_path)
+    obs = torch.randn(6, obs_dim)
+    others = obs.clone()
+    others[:, [d for d in range(obs_dim) if d != 8]] = torch.randn(6, obs_dim - 1)
+    logits = discriminator(TensorDict({"observation": obs}, [6]))["skill_logits"]
+    torch.testing.assert_close(discriminator(TensorDict({"observation": others}, [6]))["skill_logits"], logits)
+    torch.testing.assert_close(discriminator.module[1][0].weight, state["discriminator"]["module.1.0.weight"])
+
+
 def test_resume_without_checkpoint_fails_clearly(tmp_path):
     with pytest.raises(FileNotFoundError, match="no checkpoint"):
         load_recipe().train(tiny_config(tmp_path, "resume=true"))

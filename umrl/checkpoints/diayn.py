@@ -4,11 +4,13 @@ A checkpoint is a ``torch.save``'d dict:
 
 - ``"format"``: ``"umrl.diayn.v1"``;
 - ``"meta"``: ``env`` (name), ``obs_dim``, ``act_dim``, ``num_skills``, ``hidden`` (actor/Q widths),
-  ``discriminator_hidden``, ``discriminator_observation_key`` (``["next", "observation"]``: D scores s_{t+1});
+  ``discriminator_hidden``, ``discriminator_observation_key`` (``["next", "observation"]``: D scores s_{t+1}),
+  ``discriminator_input_dims`` (``None``: D reads the whole observation; a list: only those dims; absent in
+  checkpoints written before the key, which read the whole observation);
 - ``"actor"``: state dict of :func:`umrl.modules.sac.make_skill_actor` ``(obs_dim, num_skills, act_dim,
   hidden=hidden)``: reads ``"observation"`` and one-hot ``"skill"``, writes a tanh-Gaussian ``"action"`` in [-1, 1];
 - ``"discriminator"``: state dict of :func:`umrl.modules.discriminator.make_discriminator` ``(obs_dim,
-  num_skills, hidden=discriminator_hidden)``;
+  num_skills, hidden=discriminator_hidden, input_dims=discriminator_input_dims)``;
 - ``"loss"``: state dict of the :class:`~umrl.objectives.diayn.DIAYNLoss` (actor, twin Q-networks and their targets,
   discriminator, alpha), ``"optimizers"``: ``{"actor", "qvalue", "discriminator"[, "alpha"]}`` Adam state dicts;
 - ``"counters"``: ``frames`` (env steps), ``updates``, ``next_eval``, ``next_checkpoint``, ``update_credit``;
@@ -39,7 +41,7 @@ from umrl.runtime import Checkpointer
 DIAYN_FORMAT = CheckpointFormat(
     "umrl.diayn.v1", "DIAYN",
     meta_keys=("env", "obs_dim", "act_dim", "num_skills", "hidden", "discriminator_hidden",
-               "discriminator_observation_key"),
+               "discriminator_observation_key", "discriminator_input_dims"),
 )
 
 __all__ = ["DIAYN_FORMAT", "load_diayn_checkpoint", "load_discriminator", "load_skill_policy",
@@ -83,7 +85,8 @@ def load_discriminator(path: str | os.PathLike) -> tuple[TensorDictModule, int, 
     """
     state = load_diayn_checkpoint(path)
     meta = state["meta"]
-    discriminator = make_discriminator(meta["obs_dim"], meta["num_skills"], hidden=meta["discriminator_hidden"])
+    discriminator = make_discriminator(meta["obs_dim"], meta["num_skills"], hidden=meta["discriminator_hidden"],
+                                       input_dims=meta.get("discriminator_input_dims"))  # absent before the key
     discriminator.load_state_dict(state["discriminator"])
     return discriminator.eval().requires_grad_(False), meta["num_skills"], meta["obs_dim"]
 

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 from umrl.configs.common import BatchedEnvConfig, CheckpointConfig, RunConfig
 from umrl.configs.validate import boolean, group, int_list, integer, number
+from umrl.envs import get_env_spec
 from umrl.validation import InvalidValue
 
 
@@ -13,6 +14,7 @@ from umrl.validation import InvalidValue
 class NetworkConfig:
     hidden: list[int] = int_list(min=1, min_len=1)
     discriminator_hidden: list[int] = int_list(min=1, min_len=1)
+    discriminator_input_dims: list[int] | None = int_list(min=0, min_len=1, unique=True)
 
 
 @dataclass
@@ -62,8 +64,13 @@ class DIAYNConfig(RunConfig):
 
     @staticmethod
     def cross_check(cfg: dict) -> list[str]:
-        """The collector's batch holds whole env steps; the replay batch fits in the buffer."""
+        """The collector's batch holds whole env steps; the replay batch fits in the buffer; the discriminator's input
+        dims exist in the env's observation."""
         errors = []
+        dims, obs_dim = cfg["network"]["discriminator_input_dims"], get_env_spec(cfg["env"]["name"]).obs_dim
+        if dims is not None and max(dims) >= obs_dim:
+            errors.append(InvalidValue("network.discriminator_input_dims", dims,
+                                       f"null or distinct integers < {obs_dim} ({cfg['env']['name']}'s obs_dim)").message())
         fpb, num_envs = cfg["collector"]["frames_per_batch"], cfg["env"]["num_envs"]
         if fpb % num_envs:
             errors.append(InvalidValue("collector.frames_per_batch", fpb,

@@ -1,4 +1,4 @@
-"""Skill discriminator D(z|s): an MLP from the full observation to logits over K skills."""
+"""Skill discriminator D(z|s): an MLP from the observation (or chosen dims of it) to logits over K skills."""
 from __future__ import annotations
 
 import contextlib
@@ -9,13 +9,29 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torchrl.modules import MLP
 
-__all__ = ["DISCRIMINATOR_INITS", "discriminator_logits", "make_discriminator"]
+__all__ = ["DISCRIMINATOR_INITS", "ObservationDims", "discriminator_logits", "make_discriminator"]
 
 #: ``"xavier"``: Glorot-uniform weights, zero biases, as the DIAYN reference code initialises every MLP
 #: (haarnoja/sac ``sac/misc/mlp.py``: ``tf.contrib.layers.xavier_initializer()`` weights,
 #: ``tf.constant_initializer(0.)`` biases). ``"torch"``: ``torch.nn.Linear``'s default (Kaiming-uniform weights with
 #: a = sqrt(5), i.e. U(+-1/sqrt(fan_in)), and U(+-1/sqrt(fan_in)) biases).
 DISCRIMINATOR_INITS = ("xavier", "torch")
+
+
+class ObservationDims(torch.nn.Module):
+    """Keeps the observation dims ``dims`` (last axis): ``[*B, obs_dim] -> [*B, len(dims)]``.
+
+    In front of a discriminator it is DIAYN's "prior" variant (Eysenbach et al., 2018, section 4.2.2: the
+    discriminator sees only chosen state dims, e.g. the x-y position), not the unsupervised method, which sees the
+    whole observation.
+    """
+
+    def __init__(self, dims: Sequence[int]):
+        super().__init__()
+        self.register_buffer("dims", torch.as_tensor(list(dims), dtype=torch.long), persistent=False)
+
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        return observation.index_select(-1, self.dims)
 
 
 def make_discriminator(
@@ -25,6 +41,7 @@ def make_discriminator(
     hidden: Sequence[int] = (300, 300),
     seed: int | None = None,
     init: str = "xavier",
+    input_dims: Sequence[int] | None = None,
     in_key="observation",
     out_key="skill_logits",
 ) -> TensorDictModule:
@@ -41,6 +58,8 @@ def make_discriminator(
         init (str): weight initialisation, one of :data:`DISCRIMINATOR_INITS`. Defaults to ``"xavier"`` (the DIAYN
             reference code's: Glorot-uniform weights U(+-sqrt(6 / (fan_in + fan_out))), zero biases); ``"torch"``
             keeps ``torch.nn.Linear``'s default.
+        input_dims (sequence of int, optional): the observation dims D reads (:class:`ObservationDims`, DIAYN's
+            "prior" variant; an ablation, not the paper's method). Defaults to ``None``: the whole observation.
         in_key / out_key: tensordict keys. Defaults to ``"observation"`` -> ``"skill_logits"`` [*B, K].
 
     Returns:
@@ -58,12 +77,16 @@ def make_discriminator(
         raise ValueError(f"num_skills must be >= 2, got {num_skills}.")
     if init not in DISCRIMINATOR_INITS:
         raise ValueError(f"init must be one of {DISCRIMINATOR_INITS}, got {init!r}.")
+    if input_dims is not None and (
+        not input_dims or len(set(input_dims)) != len(input_dims) or not all(0 <= d < obs_dim for d in input_dims)
+    ):
+        raise ValueError(f"input_dims must be distinct observation dims in [0, {obs_dim}), got {list(input_dims)}.")
     # Seeded: draw the weights from a forked RNG; unseeded: consume the global RNG as any torch layer does.
     with torch.random.fork_rng(devices=[]) if seed is not None else contextlib.nullcontext():
         if seed is not None:
             torch.manual_seed(seed)
         net = MLP(
-            in_features=obs_dim,
+            in_features=obs_dim if input_dims is None else len(input_dims),
             out_features=num_skills,
             num_cells=list(hidden),
             activation_class=torch.nn.ReLU,
@@ -73,6 +96,8 @@ def make_discriminator(
                 if isinstance(layer, torch.nn.Linear):
                     torch.nn.init.xavier_uniform_(layer.weight)
                     torch.nn.init.zeros_(layer.bias)
+    if input_dims is not None:
+        net = torch.nn.Sequential(ObservationDims(input_dims), net)
     return TensorDictModule(net, in_keys=[in_key], out_keys=[out_key])
 
 
