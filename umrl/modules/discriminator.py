@@ -21,7 +21,7 @@ DISCRIMINATOR_INITS = ("xavier", "torch")
 class ObservationDims(torch.nn.Module):
     """Keeps the observation dims ``dims`` (last axis): ``[*B, obs_dim] -> [*B, len(dims)]``.
 
-    In front of a discriminator it is DIAYN's "prior" variant (Eysenbach et al., 2018, section 4.2.2: the
+    In front of a discriminator it is DIAYN's "prior" variant (Eysenbach et al., 2018, "using prior knowledge": the
     discriminator sees only chosen state dims, e.g. the x-y position), not the unsupervised method, which sees the
     whole observation.
     """
