@@ -192,6 +192,14 @@ def test_resume_diff_lists_changed_keys_except_the_allow_list():
         check_resume(saved, changed)
 
 
+def test_runs_saved_before_a_key_was_added_resume_with_its_old_behaviour():
+    saved = OmegaConf.to_container(validate(compose("diayn"), DIAYNConfig))
+    del saved["network"]["discriminator_input_dims"]  # a checkpoint written before the key existed
+    assert resume_diff(saved, validate(compose("diayn"), DIAYNConfig)) == {}
+    prior = validate(compose("diayn", ["network.discriminator_input_dims=[0]"]), DIAYNConfig)
+    assert resume_diff(saved, prior) == {"network.discriminator_input_dims": ("<absent>", [0])}
+
+
 def test_resume_diff_marks_keys_present_on_one_side():
     assert resume_diff({"a": 1, "b": {"c": 2}}, {"a": 1}, allow=()) == {"b.c": (2, "<absent>")}
     assert resume_diff({"a": 1}, {"a": 1, "d": math.pi}, allow=("d",)) == {}

@@ -200,7 +200,6 @@ RESUME_ALLOW = (
     "device",
     "optim.compile",
     "optim.cudagraphs",
-    "compile",
     "iterations",
     "collector.total_frames",
     "checkpoint.every",
@@ -211,10 +210,15 @@ RESUME_ALLOW = (
     "output_dir",
 )
 """Keys that may change when a run resumes: where and how it computes (``device``: checkpoints load on any device;
-DIAYN's ``optim.compile`` / ``optim.cudagraphs``, MAML's ``compile``), the total budget (``iterations``, ``collector.total_frames``), how
+DIAYN's ``optim.compile`` / ``optim.cudagraphs``), the total budget (``iterations``, ``collector.total_frames``), how
 often checkpoints are written and kept, logging, the progress bar, ``resume`` itself and ``output_dir`` (a moved run).
 Every other key (seed, env, widths, skill counts, learning rates, TRPO settings...) must match the
 checkpoint's saved config: changing it would silently continue a different run. An entry covers its sub-keys."""
+
+RESUME_ADDED = {"compile": False, "network.discriminator_input_dims": None}
+"""Keys added to a recipe after runs were saved without them, with the value that computes what those runs computed:
+a checkpoint's config that lacks one matches a run with that value (MAML's ``compile``, DIAYN's whole-observation
+discriminator)."""
 
 _ABSENT = "<absent>"
 
@@ -238,7 +242,8 @@ def resume_diff(
     """``{key: (saved value, new value)}`` for every dotted key whose value differs between a checkpoint's saved
     config and the resumed run's config, except keys under an entry of ``allow`` (see :data:`RESUME_ALLOW`).
 
-    A key present on one side only shows ``"<absent>"`` on the other. Empty when the resume is faithful.
+    A key present on one side only shows ``"<absent>"`` on the other, unless the checkpoint lacks a key of
+    :data:`RESUME_ADDED` that the run sets to the value listed there. Empty when the resume is faithful.
     """
     allow = tuple(allow)
     saved, new = _flatten(_as_plain(saved_cfg)), _flatten(_as_plain(cfg))
@@ -247,6 +252,8 @@ def resume_diff(
         if any(key == a or key.startswith(f"{a}.") for a in allow):
             continue
         before, after = saved.get(key, _ABSENT), new.get(key, _ABSENT)
+        if before is _ABSENT and key in RESUME_ADDED and after == RESUME_ADDED[key]:
+            continue
         if before != after:
             diff[key] = (before, after)
     return diff
