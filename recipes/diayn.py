@@ -176,7 +176,7 @@ def train(cfg: DictConfig) -> dict:
         baseline = evaluate_skills(eval_env, None, env_name=cfg.env.name, num_skills=num_skills,
                                    episodes_per_skill=cfg.eval.episodes_per_skill, horizon=cfg.env.horizon)
     random_metrics = {f"eval/random_{k}": v for k, v in coverage_metrics(
-        baseline, num_skills, discriminator, get_env_spec(cfg.env.name).eval_tasks()).items()}
+        baseline, num_skills, discriminator, env_spec.eval_tasks()).items()}
     log_metrics(logger, random_metrics, counters["frames"])
     if state is not None:  # after everything that draws while setting up: the loop starts where the saved one stood
         load_replay_buffer_state(buffer, state["replay"])

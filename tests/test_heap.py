@@ -1,4 +1,5 @@
 """umrl.heap.keep_freed_memory: a freed large tensor's memory is reused without page faults; user settings win."""
+import os
 import subprocess
 import sys
 
@@ -23,8 +24,6 @@ PAGES = 4 * 4 * 16 * 2**20 * 4 // 4096  # pages of the 4 tensors of the last 4 r
 
 
 def probe(mode: str, **env: str) -> tuple[str, int]:
-    import os
-
     out = subprocess.run([sys.executable, "-c", PROBE, mode], capture_output=True, text=True, check=True,
                          env={**os.environ, **env}).stdout.split()
     return out[0], int(out[1])
