@@ -13,21 +13,23 @@ torch.set_num_threads(1)
 
 
 @pytest.fixture
-def tiny_diayn_checkpoint(tmp_path):
+def tiny_diayn_checkpoint(tmp_path, request):
     """A minimal point_nav DIAYN checkpoint (4 skills, a skill actor and a discriminator with one 16-unit layer each)
-    in ``tmp_path / "diayn"``; returns ``(directory, discriminator)``."""
+    in ``tmp_path / "diayn"``; returns ``(directory, discriminator)``. Parametrised indirectly, the parameter is the
+    discriminator's ``input_dims`` (default ``None``: the whole observation)."""
     from umrl.checkpoints import DIAYN_FORMAT
     from umrl.modules.discriminator import make_discriminator
     from umrl.modules.sac import make_skill_actor
     from umrl.runtime import Checkpointer
 
     directory = tmp_path / "diayn"
-    discriminator = make_discriminator(2, 4, hidden=(16,), seed=0)
+    input_dims = getattr(request, "param", None)
+    discriminator = make_discriminator(2, 4, hidden=(16,), seed=0, input_dims=input_dims)
     torch.manual_seed(0)
     actor = make_skill_actor(2, 4, 2, hidden=(16,))
     meta = {"env": "point_nav", "obs_dim": 2, "act_dim": 2, "num_skills": 4, "hidden": [16],
             "discriminator_hidden": [16], "discriminator_observation_key": ["next", "observation"],
-            "discriminator_input_dims": None}
+            "discriminator_input_dims": input_dims}
     DIAYN_FORMAT.save(Checkpointer(directory / "checkpoints"), 1, meta, discriminator=discriminator.state_dict(),
                       actor=actor.state_dict())
     return directory, discriminator

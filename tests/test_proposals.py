@@ -51,6 +51,7 @@ def test_random_proposal_uses_a_seeded_frozen_discriminator_one_skill_per_task()
     assert full.num_tasks == 6 and full.resample().tolist() == list(range(6))
 
 
+@pytest.mark.parametrize("tiny_diayn_checkpoint", [None, [1]], indirect=True, ids=["whole_observation", "dims"])
 def test_diayn_proposal_reads_the_discriminator_from_a_checkpoint(tiny_diayn_checkpoint):
     checkpoint, discriminator = tiny_diayn_checkpoint
     proposal = make_proposal("diayn", "point_nav", trajectories_per_task=N, horizon=H, diayn_checkpoint=checkpoint)
