@@ -17,14 +17,19 @@ def test_meta_iteration_times_the_recipes_step_for_each_variant():
     assert [row[0] for row in table] == ["batched", "loop"]
     for row in table:
         learn, floor = float(row[row.index("learn") + 1]), float(row[row.index("floor") + 1])
-        assert learn > 0 and 0 < floor < learn  # the arithmetic floor bounds the measured step from below
+        ratio = float(row[row.index("learn/floor") + 1])
+        # no timing claim (a loaded machine measures a low matmul rate), but the ratio is that of the printed figures
+        half = 0.005  # each figure is printed to two decimals
+        assert learn > 0 and floor > half
+        assert (learn - half) / (floor + half) - half <= ratio <= (learn + half) / (floor - half) + half
     parts = [line.split() for line in out.splitlines() if "learn = inner" in line]
     assert len(parts) == 2
     for row, learn_row in zip(parts, table):
         seconds = [float(row[row.index(k) + 1]) for k in ("inner", "objective", "direction", "search")]
         assert all(t >= 0 for t in seconds) and seconds[2] > 0  # ten CG products take time
         learn = float(learn_row[learn_row.index("learn") + 1])
-        assert abs(sum(seconds) - learn) <= 0.021  # one iteration (--repeats 1): the parts add up, to print rounding
+        # one iteration (--repeats 1): the parts add up, to the rounding of five figures printed to two decimals
+        assert abs(sum(seconds) - learn) <= 5 * 0.005 + 1e-9
 
 
 def test_meta_iteration_counts_both_parts_of_the_learning_step(tmp_path):
