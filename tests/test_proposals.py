@@ -62,6 +62,8 @@ def test_diayn_proposal_reads_the_discriminator_from_a_checkpoint(tiny_diayn_che
     torch.testing.assert_close(td["next", "reward"], _discriminator_reward(discriminator, td, 4))
     with pytest.raises(ValueError, match="exceeds"):
         make_proposal("diayn", "point_nav", num_tasks=5, diayn_checkpoint=checkpoint)
+    with pytest.raises(ValueError, match="trained on 2-D observations but half_cheetah has 17-D ones"):
+        make_proposal("diayn", "half_cheetah", diayn_checkpoint=checkpoint)
 
 
 def test_proposal_errors_say_what_to_fix(tmp_path):

@@ -85,15 +85,9 @@ class TaskProposal:
         return skills
 
 
-def _skill_env(env_name: str, discriminator, discriminator_obs_dim: int, num_skills: int, batch: int, seed: int,
-               horizon: int, device: torch.device, options: dict) -> tuple[TransformedEnv, SkillTransform]:
+def _skill_env(env_name: str, discriminator, num_skills: int, batch: int, seed: int, horizon: int,
+               device: torch.device, options: dict) -> tuple[TransformedEnv, SkillTransform]:
     env = make_env(env_name, batch, seed=seed, horizon=horizon, device=device, **options)
-    obs_dim = env.observation_spec["observation"].shape[-1]
-    if discriminator_obs_dim != obs_dim:
-        raise ValueError(
-            f"the discriminator reads {discriminator_obs_dim}-D observations but {env_name} has {obs_dim}-D ones: "
-            "was the DIAYN checkpoint trained on another env?"
-        )
     skills = SkillTransform(num_skills)
     env.append_transform(skills)
     env.append_transform(DiscriminatorReward(discriminator, num_skills))
@@ -155,16 +149,20 @@ def make_proposal(
             raise ValueError("proposal=diayn needs diayn_checkpoint=<DIAYN run dir or step_*.pt file>.")
         from umrl.checkpoints import load_discriminator
 
-        discriminator, num_skills, discriminator_obs_dim = load_discriminator(diayn_checkpoint)
+        discriminator, num_skills, trained_obs_dim = load_discriminator(diayn_checkpoint)
+        if trained_obs_dim != spec.obs_dim:  # the checkpoint's env observation, not D's input width (chosen dims)
+            raise ValueError(
+                f"the discriminator was trained on {trained_obs_dim}-D observations but {env_name} has "
+                f"{spec.obs_dim}-D ones: was the DIAYN checkpoint trained on another env?"
+            )
     else:
         num_skills = num_skills or spec.num_skills
-        discriminator_obs_dim = spec.obs_dim
         discriminator = make_discriminator(spec.obs_dim, num_skills, hidden=discriminator_hidden, seed=seed)
         discriminator = discriminator.eval().requires_grad_(False)
     discriminator = discriminator.to(device)
     num_tasks = num_tasks or num_skills
     if num_tasks > num_skills:
         raise ValueError(f"num_tasks={num_tasks} exceeds the {num_skills} skills: one skill per task.")
-    env, skills = _skill_env(env_name, discriminator, discriminator_obs_dim, num_skills, num_tasks * n, seed, horizon,
-                             torch.device(device), options)
+    env, skills = _skill_env(env_name, discriminator, num_skills, num_tasks * n, seed, horizon, torch.device(device),
+                             options)
     return TaskProposal(name, env, num_tasks, n, num_skills=num_skills, skills=skills)
