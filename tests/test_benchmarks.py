@@ -66,3 +66,43 @@ def test_skill_coverage_evaluates_a_checkpoint_at_each_horizon_beside_a_random_p
     assert f"[{low[0]:.2f}, {high[0]:.2f}] [{low[1]:.2f}, {high[1]:.2f}]" in out
     for horizon in (5, 20):
         assert (tmp_path / "figures" / f"diayn_step_1_h{horizon}.png").stat().st_size > 1000
+
+
+def test_episode_lengths_replays_a_cell_with_its_own_episodes(tmp_path):
+    """The replay goes through meta_test with the cell's settings: its returns are the cell's, to the last digit."""
+    from umrl.metatest import AdaptationConfig, CellSpec, run_cell
+
+    cell = run_cell(CellSpec(method="scratch", env="point_nav", seed=3, output=str(tmp_path / "cell.csv"), num_tasks=3,
+                             protocol=AdaptationConfig(num_steps=2, num_trajectories=4)))
+    out = subprocess.run([sys.executable, str(REPO / "benchmarks" / "episode_lengths.py"),
+                          str(Path(cell).with_suffix(".json")), "--stand-still"],
+                         capture_output=True, text=True, timeout=300, check=True, cwd=REPO).stdout
+    rows = [line.split() for line in out.splitlines()[1:]]
+    replayed = [r for r in rows if r[0] == "point_nav/scratch/seed3"]
+    assert [int(r[1]) for r in replayed] == [0, 1, 2]
+    for _, _, ret, length, terminated, per_step, match in replayed:
+        assert float(match) == 0.0  # the cell's recorded mean return, exactly
+        assert 1 <= float(length) <= 100 and 0 <= float(terminated) <= 1
+        assert abs(float(ret) - float(length) * float(per_step)) < 0.05 * float(length) + 0.05
+    (still,) = [r for r in rows if r[0] == "point_nav/stand_still/seed3"]
+    # zero actions never leave the origin: every step costs the goal's distance, for all 100 steps
+    from umrl.envs import get_task_family
+
+    expected = -100 * get_task_family("point_nav").eval_tasks(3).norm(dim=-1).mean().item()
+    assert abs(float(still[2]) - expected) < 0.05 and still[3:5] == ["100.0", "0.00"]
+
+
+def test_episode_stats_counts_first_episodes_and_ant_jumps():
+    import torch
+    from script_loading import load_script
+    from tensordict import TensorDict
+
+    bench = load_script("benchmarks/episode_lengths.py")
+    terminated = torch.tensor([[[False], [True], [False]], [[False], [False], [True]]])[None]  # [T=1, N=2, H=3, 1]
+    observation = torch.zeros(1, 2, 3, 107)
+    observation[0, 0, 1, 2] = 1.2  # copy 0 ends at step 1 with its torso above 1.0 (a jump), copy 1 at step 2 (below)
+    batch = TensorDict({"next": {"reward": torch.ones(1, 2, 3, 1), "done": terminated, "terminated": terminated,
+                                 "observation": observation}}, [1, 2, 3])
+    stats = bench.episode_stats(batch, "ant")
+    assert stats == {"return": 2.5, "length": 2.5, "terminated": 1.0, "reward/step": 1.0, "jumped": 0.5}
+    assert bench.episode_stats(batch, "half_cheetah")["jumped"] != bench.episode_stats(batch, "half_cheetah")["jumped"]

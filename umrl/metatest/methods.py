@@ -10,11 +10,12 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import torch
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from umrl.envs import get_env_spec
@@ -156,13 +157,14 @@ def _load_initialisation(method: str, env_name: str, checkpoint: str | os.PathLi
 
 
 def meta_test(init: Initialisation, env_name: str, tasks: torch.Tensor, *, lr: float, seed: int,
-              config: AdaptationConfig, skill_trajectories: int,
-              device: torch.device | str = "cpu") -> tuple[torch.Tensor, dict]:
+              config: AdaptationConfig, skill_trajectories: int, device: torch.device | str = "cpu",
+              observe: Callable[[int, TensorDictBase], None] | None = None) -> tuple[torch.Tensor, dict]:
     """Adapt ``init`` on ``tasks`` ``[T, task_dim]``; returns (returns ``[K + 1, T]`` on the CPU, info).
 
     The envs, the per-task parameters and the batches live on ``device`` (``init.policy`` must be there too, as
     :func:`load_initialisation` leaves it). DIAYN-init first picks each task's best skill from
-    ``skill_trajectories`` rollouts per (task, skill); ``info["skills"]`` lists them.
+    ``skill_trajectories`` rollouts per (task, skill); ``info["skills"]`` lists them. ``observe`` is passed to
+    :meth:`TaskAdapter.run` (it sees every step's batch).
     """
     seed_everything(seed)
     info: dict = {}
@@ -173,7 +175,8 @@ def meta_test(init: Initialisation, env_name: str, tasks: torch.Tensor, *, lr: f
         info["skills"] = skills.tolist()
     env = make_eval_env(env_name, tasks, config.num_trajectories, seed=seed, horizon=config.horizon, skills=skills,
                         num_skills=init.num_skills, device=device)
-    returns = TaskAdapter(init.policy, env, tasks.shape[0], optimizer=init.optimizer, lr=lr, config=config).run()
+    adapter = TaskAdapter(init.policy, env, tasks.shape[0], optimizer=init.optimizer, lr=lr, config=config)
+    returns = adapter.run(observe)
     env.close()
     return returns.cpu(), info
 
@@ -294,7 +297,8 @@ def run_cell(spec: CellSpec) -> str:
     start = time.perf_counter()
     config = spec.protocol
     init = load_initialisation(spec.method, spec.env, spec.checkpoint, seed=spec.seed, device=device)
-    info: dict = {"method": spec.method, "env": spec.env, "seed": spec.seed, "checkpoint": spec.checkpoint}
+    info: dict = {"method": spec.method, "env": spec.env, "seed": spec.seed, "checkpoint": spec.checkpoint,
+                  "num_tasks": spec.num_tasks, "skill_trajectories": spec.skill_trajectories}
     if init.optimizer == "sgd":
         lr = float(spec.sgd_lr) if spec.sgd_lr is not None else init.lr
     else:

@@ -169,12 +169,17 @@ class TaskAdapter:
             self.scheduler.step()
         return losses.detach()
 
-    def run(self) -> torch.Tensor:
-        """Returns ``[K + 1, T]``: the mean undiscounted return of each task before each update and after the last."""
+    def run(self, observe: Callable[[int, TensorDictBase], None] | None = None) -> torch.Tensor:
+        """Returns ``[K + 1, T]``: the mean undiscounted return of each task before each update and after the last.
+
+        ``observe(k, batch)``, if given, sees each step's ``[T, N, H]`` batch before the update it feeds.
+        """
         returns = []
         for k in range(self.config.num_steps + 1):
             batch = self.collect()
             returns.append(episode_returns(batch).mean(-1))
+            if observe is not None:
+                observe(k, batch)
             if k < self.config.num_steps:
                 self.step(batch)
         return torch.stack(returns)

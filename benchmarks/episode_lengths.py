@@ -1,0 +1,136 @@
+"""How long meta-test episodes last: replays suite cells and prints the episode lengths behind their returns.
+
+    python benchmarks/episode_lengths.py outputs/suite/quick/cells/ant/*/seed0-*.json --stand-still
+    python benchmarks/episode_lengths.py CELL.json --steps 0 5 10
+
+Where an env ends episodes early (ant: gymnasium's Ant-v5 ends one when the torso height leaves [0.2, 1.0];
+point_nav: when the goal is reached), a return sums a different number of steps for each policy, and with rewards
+below zero per step a shorter episode scores higher. This separates the two.
+
+Each cell JSON (written by ``umrl.metatest.run_cell`` beside its CSV) is replayed with its own method, checkpoint,
+seed, learning rate and protocol through ``umrl.metatest.meta_test``, so the episodes are the cell's own: the
+replayed mean returns are compared with those the cell recorded (``match`` column: the largest difference; the suite
+runs cells on one torch thread, as ``--threads`` does by default). Printed per cell and adaptation step ``k``: the
+mean return, the mean episode length, the fraction of episodes the env terminated (not the horizon's truncation),
+the mean reward per step and, on ant, the fraction terminated by a jump (the torso above the healthy range).
+``--stand-still`` adds, per env and seed, zero actions on the same tasks (no adaptation).
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+from pathlib import Path
+
+import torch
+from tensordict import TensorDictBase
+
+from umrl.envs.mujoco_batched import AntBatchedEnv
+from umrl.envs.tasks import get_task_family
+from umrl.metatest import AdaptationConfig, CellSpec, load_initialisation, meta_test
+from umrl.metatest.protocol import make_eval_env
+from umrl.runtime import seed_everything
+from umrl.trajectories import trajectory_mask
+
+#: ant's observation keeps x-y, so qpos[2], the torso height, is observation dim 2
+ANT_TORSO_Z = 2
+HEADER = (f"{'cell':<28}{'k':>4}{'return':>10}{'length':>8}{'terminated':>12}{'reward/step':>13}"
+          f"{'jumped':>8}{'match':>10}")
+
+
+def episode_stats(batch: TensorDictBase, env_name: str) -> dict[str, float]:
+    """Means over a ``[T, N, H]`` batch's first episodes: return, length, fraction terminated, reward per step and
+    (ant, else NaN) the fraction terminated by a jump."""
+    mask = trajectory_mask(batch["next", "done"])
+    reward = batch["next", "reward"].squeeze(-1)
+    length = mask.sum(-1).float()
+    terminated = batch["next", "terminated"].squeeze(-1) & mask  # the step where the env ended a first episode
+    stats = {"return": (reward * mask).sum(-1).mean().item(), "length": length.mean().item(),
+             "terminated": terminated.any(-1).float().mean().item(),
+             "reward/step": ((reward * mask).sum() / mask.sum()).item(), "jumped": float("nan")}
+    if env_name == "ant":
+        above = batch["next", "observation"][..., ANT_TORSO_Z] > AntBatchedEnv.HEALTHY_Z_RANGE[1]
+        stats["jumped"] = (terminated & above).any(-1).float().mean().item()
+    return stats
+
+
+def row(label: str, k: int, stats: dict[str, float], match: str = "") -> str:
+    jumped = "" if stats["jumped"] != stats["jumped"] else f"{stats['jumped']:.2f}"  # NaN: not ant
+    return (f"{label:<28}{k:>4}{stats['return']:>10.1f}{stats['length']:>8.1f}{stats['terminated']:>12.2f}"
+            f"{stats['reward/step']:>13.3f}{jumped:>8}{match:>10}")
+
+
+def num_tasks(path: Path, cell: dict) -> int:
+    """The cell's number of evaluation tasks: recorded in its JSON, or (older cells) counted in its CSV."""
+    if "num_tasks" in cell:
+        return cell["num_tasks"]
+    with path.with_suffix(".csv").open() as rows:
+        return len({row["task"] for row in csv.DictReader(rows)})
+
+
+def replay_cell(path: Path, steps: set[int] | None, device: str) -> list[str]:
+    """Replay the cell recorded in ``path`` (its JSON); one printed row per adaptation step in ``steps``."""
+    cell = json.loads(path.read_text())
+    config = AdaptationConfig(**cell["protocol"])
+    init = load_initialisation(cell["method"], cell["env"], cell["checkpoint"], seed=cell["seed"], device=device)
+    tasks = get_task_family(cell["env"]).eval_tasks(num_tasks(path, cell))
+    per_step: dict[int, dict[str, float]] = {}
+
+    def observe(k: int, batch: TensorDictBase) -> None:
+        per_step[k] = episode_stats(batch, cell["env"])
+
+    returns, _ = meta_test(init, cell["env"], tasks, lr=cell["lr"], seed=cell["seed"], config=config,
+                           skill_trajectories=cell.get("skill_trajectories", CellSpec.skill_trajectories), device=device, observe=observe)
+    label = f"{cell['env']}/{cell['method']}/seed{cell['seed']}"
+    rows = []
+    for k, stats in per_step.items():
+        if steps is None or k in steps:
+            diff = abs(returns[k].mean().item() - cell["mean_return"][k])
+            rows.append(row(label, k, stats, f"{diff:.1e}"))
+    return rows
+
+
+def stand_still(env_name: str, seed: int, config: AdaptationConfig, num_tasks: int) -> str:
+    """Zero actions on the cells' tasks and seed (no adaptation): the return of not moving."""
+    seed_everything(seed)
+    env = make_eval_env(env_name, get_task_family(env_name).eval_tasks(num_tasks), config.num_trajectories,
+                        seed=seed, horizon=config.horizon)
+
+    def zero_action(td: TensorDictBase) -> TensorDictBase:
+        return td.set("action", torch.zeros(env.action_spec.shape))
+
+    with torch.no_grad():
+        batch = env.rollout(config.horizon, policy=zero_action, auto_reset=True, break_when_any_done=False)
+    env.close()
+    batch = batch.view(num_tasks, config.num_trajectories, config.horizon)
+    return row(f"{env_name}/stand_still/seed{seed}", 0, episode_stats(batch, env_name))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("cells", nargs="+", type=Path, help="cell JSON files (<suite output>/cells/<env>/<method>/)")
+    parser.add_argument("--steps", type=int, nargs="*", default=None, help="adaptation steps to print (default: all)")
+    parser.add_argument("--stand-still", action="store_true", help="add zero actions per env and seed")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (the suite's cells use 1)")
+    parser.add_argument("--device", default="cpu")
+    args = parser.parse_args()
+    missing = [str(p) for p in args.cells if p.suffix != ".json" or not p.is_file()]
+    if missing:
+        raise SystemExit(f"cells: not cell JSON files: {missing} (expected <suite output>/cells/<env>/<method>/"
+                         f"seed<s>-<key>.json)")
+    torch.set_num_threads(args.threads)
+    steps = None if args.steps is None else set(args.steps)
+    print(HEADER)
+    baselines = {}
+    for path in args.cells:
+        for line in replay_cell(path, steps, args.device):
+            print(line, flush=True)
+        cell = json.loads(path.read_text())
+        baselines[cell["env"], cell["seed"]] = AdaptationConfig(**cell["protocol"]), num_tasks(path, cell)
+    if args.stand_still:
+        for (env_name, seed), (config, tasks) in sorted(baselines.items()):
+            print(stand_still(env_name, seed, config, tasks), flush=True)
+
+
+if __name__ == "__main__":
+    main()
