@@ -5,7 +5,9 @@
 
 Where an env ends episodes early (ant: gymnasium's Ant-v5 ends one when the torso height leaves [0.2, 1.0];
 point_nav: when the goal is reached), a return sums a different number of steps for each policy, and with rewards
-below zero per step a shorter episode scores higher. This separates the two.
+below zero per step a shorter episode scores higher. The suite's ``results.csv`` records each cell's mean episode
+``length`` (and ``summary.md`` shows it where episodes end early); this script tells more, for any cell, including
+cells written before that column: the reward per step, how episodes end, and a policy that does not move.
 
 Each cell JSON (written by ``umrl.metatest.run_cell`` beside its CSV) is replayed with its own method, checkpoint,
 seed, learning rate and protocol through ``umrl.metatest.meta_test``, so the episodes are the cell's own: the
@@ -29,6 +31,7 @@ from umrl.envs.mujoco_batched import AntBatchedEnv
 from umrl.envs.tasks import get_task_family
 from umrl.metatest import AdaptationConfig, CellSpec, load_initialisation, meta_test
 from umrl.metatest.protocol import make_eval_env
+from umrl.objectives.policy_gradient import episode_lengths
 from umrl.runtime import seed_everything
 from umrl.trajectories import trajectory_mask
 
@@ -43,7 +46,7 @@ def episode_stats(batch: TensorDictBase, env_name: str) -> dict[str, float]:
     (ant, else NaN) the fraction terminated by a jump."""
     mask = trajectory_mask(batch["next", "done"])
     reward = batch["next", "reward"].squeeze(-1)
-    length = mask.sum(-1).float()
+    length = episode_lengths(batch).float()
     terminated = batch["next", "terminated"].squeeze(-1) & mask  # the step where the env ended a first episode
     stats = {"return": (reward * mask).sum(-1).mean().item(), "length": length.mean().item(),
              "terminated": terminated.any(-1).float().mean().item(),

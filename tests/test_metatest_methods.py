@@ -91,6 +91,7 @@ def test_run_cell_writes_rows_with_schedule_and_skips_finished(tmp_path):
                                   "protocol": {"num_steps": 1, "num_trajectories": 2, "horizon": 5}})
     rows = read_rows([run_cell(spec)])
     assert len(rows) == 2 * 2 and {r["lr_schedule"] for r in rows} == {"constant"}
+    assert all(0 < r["length"] <= 5 for r in rows)  # mean episode length per task, at most the horizon
     mtime = (tmp_path / "cell.csv").stat().st_mtime_ns
     run_cell(spec)
     assert (tmp_path / "cell.csv").stat().st_mtime_ns == mtime

@@ -18,13 +18,16 @@ from umrl.metatest import (
     write_rows,
 )
 
+#: mean episode lengths [K + 1, T] of episodes that all run to the horizon (100 steps)
+FULL_6x4, FULL_3x2 = np.full((6, 4), 100.0), np.full((3, 2), 100.0)
+
 
 def test_tidy_rows_roundtrip_curves_and_table(tmp_path):
     rows = []
     for seed in range(2):
         good = np.tile(np.arange(6.0)[:, None], (1, 4))  # [K+1=6, T=4], rising
-        rows += to_rows(good + seed, method="uml_diayn", env="point_nav", seed=seed)
-        rows += to_rows(np.zeros((6, 4)), method="scratch", env="point_nav", seed=seed)
+        rows += to_rows(good + seed, FULL_6x4, method="uml_diayn", env="point_nav", seed=seed)
+        rows += to_rows(np.zeros((6, 4)), FULL_6x4, method="scratch", env="point_nav", seed=seed)
     path = write_rows(rows, tmp_path / "cell.csv")
     back = read_rows([path])
     assert back == rows
@@ -33,9 +36,33 @@ def test_tidy_rows_roundtrip_curves_and_table(tmp_path):
     np.testing.assert_allclose(curves["point_nav"]["scratch"].high, 0.0)
     markdown, records = summary_table(back, methods=["uml_diayn", "scratch"])
     assert "| uml_diayn |" in markdown and "k=5" in markdown and markdown.index("uml_diayn") < markdown.index("scratch")
+    assert "episode length" not in markdown  # every episode ran to the horizon: no length column
     auc_rec = {r["method"]: r for r in records if r["metric"] == "auc"}
     assert auc_rec["uml_diayn"]["mean"] == pytest.approx(12.5 + 5 * 0.5)  # trapezoid of 0..5 plus the seed offset
     assert auc_rec["scratch"]["mean"] == 0.0
+
+
+def test_summary_shows_episode_lengths_where_episodes_end_early():
+    """On an env that ends episodes early a return sums fewer steps: the table then gives the mean length at k=0, K."""
+    lengths = np.array([[30.0, 50.0], [40.0, 60.0], [100.0, 100.0]])  # [K+1=3, T=2]
+    rows = to_rows(np.full((3, 2), -1.0), lengths, method="oracle", env="ant", seed=0)
+    rows += to_rows(np.full((3, 2), -2.0), FULL_3x2, method="scratch", env="ant", seed=0)
+    markdown, records = summary_table(rows, steps=(0,), methods=["oracle", "scratch"])
+    assert "episode length k=0 / k=2 (mean)" in markdown
+    assert "| 2 | 40.0 / 100.0 |" in markdown and "| 2 | 100.0 / 100.0 |" in markdown
+    length_means = {(r["method"], r["metric"]): r["mean"] for r in records if r["metric"].startswith("length")}
+    assert length_means == {("oracle", "length_k0"): 40.0, ("oracle", "length_k2"): 100.0,
+                            ("scratch", "length_k0"): 100.0, ("scratch", "length_k2"): 100.0}
+    with pytest.raises(ValueError, match="lengths .* must match returns"):
+        to_rows(np.zeros((3, 2)), np.zeros((2, 2)), method="oracle", env="ant", seed=0)
+
+
+def test_rows_with_and_without_length_share_one_csv(tmp_path):
+    """A cell written before the length column beside a new one: both round-trip, the old rows without a length."""
+    new = to_rows(np.full((1, 1), -3.0), np.full((1, 1), 42.0), method="scratch", env="ant", seed=1)
+    old = [{k: v for k, v in row.items() if k != "length"} for row in to_rows(
+        np.full((1, 1), -2.0), np.full((1, 1), 100.0), method="scratch", env="ant", seed=0)]
+    assert read_rows([write_rows(old + new, tmp_path / "mixed.csv")]) == old + new
 
 
 def test_old_csv_without_schedule_column_reads_as_constant(tmp_path):
@@ -48,10 +75,12 @@ def test_old_csv_without_schedule_column_reads_as_constant(tmp_path):
 def test_both_sgd_schedules_are_separate_arms():
     rows = []
     for seed in range(2):
-        rows += to_rows(np.full((3, 2), -10.0), method="uml_diayn", env="point_nav", seed=seed)
-        rows += to_rows(np.full((3, 2), -4.0), method="uml_diayn", env="point_nav", seed=seed,
-                        lr_schedule="reference")
-        rows += to_rows(np.full((3, 2), -7.0), method="scratch", env="point_nav", seed=seed)
+        rows += to_rows(np.full((3, 2), -10.0), FULL_3x2,
+                        method="uml_diayn", env="point_nav", seed=seed)
+        rows += to_rows(np.full((3, 2), -4.0), FULL_3x2,
+                        method="uml_diayn", env="point_nav", seed=seed, lr_schedule="reference")
+        rows += to_rows(np.full((3, 2), -7.0), FULL_3x2,
+                        method="scratch", env="point_nav", seed=seed)
     markdown, records = summary_table(rows, steps=(0,), methods=["scratch", "uml_diayn"])
     auc_mean = {r["method"]: r["mean"] for r in records if r["metric"] == "auc"}
     # trapezoid over k = 0..2 of a constant r is 2 r, per arm
@@ -71,7 +100,7 @@ def test_both_sgd_schedules_are_separate_arms():
 def test_ablation_curves_and_table():
     rows = []
     for it, level in ((0, -10.0), (5, -4.0)):
-        rows += to_rows(np.full((3, 2), level), method="uml_diayn", env="point_nav", seed=0, iteration=str(it))
+        rows += to_rows(np.full((3, 2), level), FULL_3x2, method="uml_diayn", env="point_nav", seed=0, iteration=str(it))
     curves = ablation_curves(rows, metric="auc")
     c = curves["point_nav"]["uml_diayn"]
     assert list(c.x) == [0, 5] and c.mean == pytest.approx([-20.0, -8.0])

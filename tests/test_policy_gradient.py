@@ -6,6 +6,7 @@ from tensordict import TensorDict
 from umrl.objectives.policy_gradient import (
     baseline_features,
     compute_advantages,
+    episode_lengths,
     episode_returns,
     fit_linear_baseline,
     trajectory_mask,
@@ -93,5 +94,9 @@ def test_vpg_loss_and_returns_are_masked_means_and_sums():
     ret = episode_returns(td)
     assert ret.shape == (3, 4)
     torch.testing.assert_close(ret[0, 0], td["next", "reward"][0, 0, :3].sum())
+    lengths = episode_lengths(td)  # the first episode of copy (0, 0) ends at t=2, every other one at the horizon
+    expected_lengths = torch.full((3, 4), 6)
+    expected_lengths[0, 0] = 3
+    assert torch.equal(lengths, expected_lengths)
     with pytest.raises(ValueError, match="expected the batch"):
         vpg_loss(log_prob[..., :-1], td)

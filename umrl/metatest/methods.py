@@ -32,6 +32,7 @@ from umrl.metatest.protocol import (
 )
 from umrl.metatest.results import to_rows, write_rows
 from umrl.modules.policy import make_gaussian_policy
+from umrl.objectives.policy_gradient import episode_lengths
 from umrl.proposals import PROPOSALS
 from umrl.runtime import seed_everything
 from umrl.validation import (
@@ -314,12 +315,18 @@ def run_cell(spec: CellSpec) -> str:
             lr, info["sweep_scores"] = sweep_learning_rate(
                 trial, list(spec.sweep.lrs), sweep_tasks(spec.env, spec.sweep.num_tasks, spec.seed))
     tasks = get_task_family(spec.env).eval_tasks(spec.num_tasks)
+    lengths = []  # [K + 1] x [T]: mean episode length per task at each step, beside the returns
+
+    def record_lengths(step: int, batch: TensorDictBase) -> None:
+        lengths.append(episode_lengths(batch).float().mean(-1).cpu())
+
     returns, extra_info = meta_test(init, spec.env, tasks, lr=lr, seed=spec.seed, config=config,
-                                    skill_trajectories=spec.skill_trajectories, device=device)
+                                    skill_trajectories=spec.skill_trajectories, device=device,
+                                    observe=record_lengths)
     info.update(extra_info, lr=lr, optimizer=init.optimizer, lr_schedule=spec.lr_schedule,
                 protocol=asdict(config), seconds=time.perf_counter() - start, mean_return=returns.mean(-1).tolist())
-    rows = to_rows(returns, method=spec.method, env=spec.env, seed=spec.seed, lr_schedule=spec.lr_schedule,
-                   **dict(spec.extra))
+    rows = to_rows(returns, torch.stack(lengths), method=spec.method, env=spec.env, seed=spec.seed,
+                   lr_schedule=spec.lr_schedule, **dict(spec.extra))
     write_json_atomic(output.with_suffix(".json"), info)
     write_rows(rows, output)  # last: the CSV's existence marks the cell finished
     return str(output)

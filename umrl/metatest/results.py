@@ -1,7 +1,8 @@
 """Meta-test results: tidy rows and CSV files, curves, the summary and ablation tables, the suite's ``summary.md``.
 
-A row is one (method, env, seed, task, step) return, plus ``lr_schedule`` (``constant`` | ``reference``: the
-step-size schedule the cell adapted with) and any constant ``extra`` columns (the ablation's ``iteration``). Tables
+A row is one (method, env, seed, task, step) return and mean episode ``length`` (steps before the env ended the
+episode, or the horizon), plus ``lr_schedule`` (``constant`` | ``reference``: the step-size schedule the cell
+adapted with) and any constant ``extra`` columns (the ablation's ``iteration``). Tables
 and curves group rows by *arm*: the method, suffixed by its schedule when that is not ``constant``
 (:func:`arm_label`), so one table can hold both SGD schedules of a MAML initialisation.
 """
@@ -20,8 +21,8 @@ from umrl.metatest.plots import METHOD_COLORS, Curve
 from umrl.metatest.stats import auc, bootstrap_ci, summarize
 from umrl.runtime import write_text_atomic
 
-#: Columns of the tidy results table (``extra`` columns follow them).
-COLUMNS = ("method", "env", "seed", "task", "step", "return", "lr_schedule")
+#: Columns of the tidy results table (``extra`` columns follow them; files written before ``length`` lack it).
+COLUMNS = ("method", "env", "seed", "task", "step", "return", "length", "lr_schedule")
 
 
 def arm_label(method: str, lr_schedule: str = "constant") -> str:
@@ -39,25 +40,31 @@ def arm_styles(rows: Iterable[Mapping]) -> dict[str, dict]:
                         "linestyle": "-" if r.get("lr_schedule", "constant") == "constant" else "--"} for r in rows}
 
 
-def to_rows(returns: torch.Tensor | np.ndarray, *, method: str, env: str, seed: int, lr_schedule: str = "constant",
-            **extra) -> list[dict]:
-    """Tidy rows (:data:`COLUMNS` plus ``extra`` columns) from returns ``[K + 1, T]``."""
-    returns = np.asarray(returns)
+def to_rows(returns: torch.Tensor | np.ndarray, lengths: torch.Tensor | np.ndarray, *, method: str, env: str,
+            seed: int, lr_schedule: str = "constant", **extra) -> list[dict]:
+    """Tidy rows (:data:`COLUMNS` plus ``extra`` columns) from returns and mean episode lengths, both ``[K + 1, T]``."""
+    returns, lengths = np.asarray(returns), np.asarray(lengths)
+    if lengths.shape != returns.shape:
+        raise ValueError(f"lengths {lengths.shape} must match returns {returns.shape} ([K + 1, T]).")
     return [
         {"method": method, "env": env, "seed": int(seed), "task": int(t), "step": int(k),
-         "return": float(returns[k, t]), "lr_schedule": lr_schedule, **extra}
+         "return": float(returns[k, t]), "length": float(lengths[k, t]), "lr_schedule": lr_schedule, **extra}
         for k in range(returns.shape[0]) for t in range(returns.shape[1])
     ]
 
 
 def write_rows(rows: Sequence[Mapping], path: str | os.PathLike) -> Path:
-    """Write rows as CSV atomically (a killed write never leaves a partial file under ``path``)."""
+    """Write rows as CSV atomically (a killed write never leaves a partial file under ``path``).
+
+    The columns are every key of any row, in the order first seen; a row without one (an older cell without
+    ``length``) leaves it empty.
+    """
     if not rows:
         raise ValueError(f"no rows to write to {path}.")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     text = io.StringIO(newline="")
-    writer = csv.DictWriter(text, fieldnames=list(rows[0]))
+    writer = csv.DictWriter(text, fieldnames=list(dict.fromkeys(key for row in rows for key in row)))
     writer.writeheader()
     writer.writerows(rows)
     write_text_atomic(path, text.getvalue())
@@ -65,9 +72,9 @@ def write_rows(rows: Sequence[Mapping], path: str | os.PathLike) -> Path:
 
 
 def read_rows(paths: Iterable[str | os.PathLike]) -> list[dict]:
-    """Rows of one or more CSV files, with ``seed``/``task``/``step`` as int and ``return`` as float.
+    """Rows of one or more CSV files, with ``seed``/``task``/``step`` as int and ``return``/``length`` as float.
 
-    Files written before the ``lr_schedule`` column existed read as ``constant``.
+    Files written before the ``lr_schedule`` column existed read as ``constant``; before ``length``, rows have none.
     """
     rows = []
     for path in paths:
@@ -75,17 +82,22 @@ def read_rows(paths: Iterable[str | os.PathLike]) -> list[dict]:
             for row in csv.DictReader(f):
                 row.update(seed=int(row["seed"]), task=int(row["task"]), step=int(row["step"]),
                            **{"return": float(row["return"])})
+                if row.get("length"):
+                    row["length"] = float(row["length"])
+                else:  # written before the column, or beside such rows (an empty field)
+                    row.pop("length", None)
                 row.setdefault("lr_schedule", "constant")
                 rows.append(row)
     return rows
 
 
-def run_matrix(rows: Iterable[Mapping], *, env: str, method: str) -> np.ndarray:
-    """``[runs, K + 1]`` returns of one (env, arm): one row per (seed, task), sorted; ``method`` is an arm label."""
+def run_matrix(rows: Iterable[Mapping], *, env: str, method: str, value: str = "return") -> np.ndarray:
+    """``[runs, K + 1]`` returns (or another ``value`` column) of one (env, arm): one row per (seed, task), sorted;
+    ``method`` is an arm label."""
     table: dict[tuple[int, int], dict[int, float]] = {}
     for row in rows:
         if row["env"] == env and _label(row) == method:
-            table.setdefault((row["seed"], row["task"]), {})[row["step"]] = row["return"]
+            table.setdefault((row["seed"], row["task"]), {})[row["step"]] = row[value]
     if not table:
         raise ValueError(f"no results for method {method!r} on env {env!r}.")
     steps = sorted(next(iter(table.values())))
@@ -121,8 +133,10 @@ def summary_table(rows: Sequence[Mapping], *, steps: Sequence[int] = (0, 1, 5), 
     """Markdown table and records: return at ``k ∈ steps ∪ {K}`` and AUC per (env, arm).
 
     Every cell is the IQM over (seed, task) runs with its bootstrap CI; the AUC is also given as a mean with CI.
-    Returns ``(markdown, records)``; each record holds ``env``, ``method`` (the arm label), ``metric`` and
-    :func:`~umrl.metatest.stats.summarize`'s keys.
+    Where the env ends episodes early (the rows' ``length`` varies), a last column gives the mean episode length at
+    k = 0 and k = K: there a return sums fewer steps for a policy whose episodes end sooner.
+    Returns ``(markdown, records)``; each record holds ``env``, ``method`` (the arm label), ``metric`` (``return_k<k>``,
+    ``auc``, ``length_k<k>``) and :func:`~umrl.metatest.stats.summarize`'s keys.
     """
     records = []
     lines = []
@@ -130,7 +144,10 @@ def summary_table(rows: Sequence[Mapping], *, steps: Sequence[int] = (0, 1, 5), 
         order = _ordered_arms(rows, env, methods)
         num_steps = run_matrix(rows, env=env, method=order[0]).shape[1] - 1
         ks = sorted({k for k in steps if k <= num_steps} | {num_steps})
+        env_rows = [r for r in rows if r["env"] == env]
+        lengths = all("length" in r for r in env_rows) and len({r["length"] for r in env_rows}) > 1
         header = ["method"] + [f"k={k} IQM [95% CI]" for k in ks] + ["AUC IQM [95% CI]", "AUC mean [95% CI]", "runs"]
+        header += [f"episode length k=0 / k={num_steps} (mean)"] if lengths else []
         lines += [f"### {env}", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
         for method in order:
             matrix = run_matrix(rows, env=env, method=method)
@@ -143,7 +160,14 @@ def summary_table(rows: Sequence[Mapping], *, steps: Sequence[int] = (0, 1, 5), 
             records.append({"env": env, "method": method, "metric": "auc", **s})
             cells.append(f"{s['iqm']:.1f} [{s['iqm_low']:.1f}, {s['iqm_high']:.1f}]")
             cells.append(f"{s['mean']:.1f} [{s['mean_low']:.1f}, {s['mean_high']:.1f}]")
-            lines.append(f"| {method} | " + " | ".join(cells) + f" | {matrix.shape[0]} |")
+            cells.append(str(matrix.shape[0]))
+            if lengths:
+                length = run_matrix(rows, env=env, method=method, value="length")
+                ends = [summarize(length[:, k], confidence=confidence) for k in (0, num_steps)]
+                records += [{"env": env, "method": method, "metric": f"length_k{k}", **e}
+                            for k, e in zip((0, num_steps), ends)]
+                cells.append(f"{ends[0]['mean']:.1f} / {ends[1]['mean']:.1f}")
+            lines.append(f"| {method} | " + " | ".join(cells) + " |")
         lines.append("")
     return "\n".join(lines), records
 

@@ -11,6 +11,7 @@ from umrl.objectives.maml import MAMLLoss
 from umrl.objectives.policy_gradient import (
     baseline_features,
     compute_advantages,
+    episode_lengths,
     episode_returns,
     fit_linear_baseline,
     trajectory_mask,
@@ -25,6 +26,7 @@ __all__ = [
     "VIMELoss",
     "baseline_features",
     "compute_advantages",
+    "episode_lengths",
     "episode_returns",
     "fit_linear_baseline",
     "make_diayn_optimizers",

@@ -27,6 +27,7 @@ from umrl.trajectories import trajectory_mask
 __all__ = [
     "baseline_features",
     "compute_advantages",
+    "episode_lengths",
     "episode_returns",
     "fit_linear_baseline",
     "trajectory_mask",
@@ -153,7 +154,15 @@ def vpg_loss(log_prob: torch.Tensor, td: TensorDictBase) -> torch.Tensor:
     return -(log_prob * td["advantage"].squeeze(-1) * weights).sum((-2, -1)) / weights.sum((-2, -1)).clamp_min(1)
 
 
+def _first_episode(td: TensorDictBase) -> torch.Tensor:
+    return td["mask"] if "mask" in td else trajectory_mask(td["next", "done"])
+
+
 def episode_returns(td: TensorDictBase) -> torch.Tensor:
     """Undiscounted return of each trajectory's first episode, ``[..., N]``."""
-    mask = td["mask"] if "mask" in td else trajectory_mask(td["next", "done"])
-    return (td["next", "reward"].squeeze(-1) * mask).sum(-1)
+    return (td["next", "reward"].squeeze(-1) * _first_episode(td)).sum(-1)
+
+
+def episode_lengths(td: TensorDictBase) -> torch.Tensor:
+    """Steps in each trajectory's first episode, ``[..., N]`` (long): the horizon unless the env ended it earlier."""
+    return _first_episode(td).sum(-1)
