@@ -15,7 +15,8 @@ replayed mean returns are compared with those the cell recorded (``match`` colum
 runs cells on one torch thread, as ``--threads`` does by default). Printed per cell and adaptation step ``k``: the
 mean return, the mean episode length, the fraction of episodes the env terminated (not the horizon's truncation),
 the mean reward per step and, on ant, the fraction terminated by a jump (the torso above the healthy range).
-``--stand-still`` adds, per env and seed, zero actions on the same tasks (no adaptation).
+``--stand-still`` adds, per env and seed, zero actions on the same tasks (no adaptation); ``--maml-checkpoints`` adds
+MAML checkpoints' policies there at k = 0 (for instance the ones a run kept along meta-training).
 """
 from __future__ import annotations
 
@@ -27,11 +28,13 @@ from pathlib import Path
 import torch
 from tensordict import TensorDictBase
 
+from umrl.checkpoints import load_maml_policy
 from umrl.envs.mujoco_batched import AntBatchedEnv
 from umrl.envs.tasks import get_task_family
 from umrl.metatest import AdaptationConfig, CellSpec, load_initialisation, meta_test
 from umrl.metatest.protocol import make_eval_env
 from umrl.objectives.policy_gradient import episode_lengths
+from umrl.rollout import collect
 from umrl.runtime import seed_everything
 from umrl.trajectories import trajectory_mask
 
@@ -109,11 +112,25 @@ def stand_still(env_name: str, seed: int, config: AdaptationConfig, num_tasks: i
     return row(f"{env_name}/stand_still/seed{seed}", 0, episode_stats(batch, env_name))
 
 
+def zero_shot(path: str, env_name: str, seed: int, config: AdaptationConfig, num_tasks: int) -> str:
+    """A MAML checkpoint's policy on the evaluation tasks without adaptation (k = 0), as a cell would roll it out."""
+    seed_everything(seed)
+    policy, _ = load_maml_policy(path)
+    env = make_eval_env(env_name, get_task_family(env_name).eval_tasks(num_tasks), config.num_trajectories,
+                        seed=seed, horizon=config.horizon)
+    batch = collect(env, policy, num_tasks=num_tasks, horizon=config.horizon)
+    env.close()
+    return row(f"{Path(path).parent.parent.name[:20]}/{Path(path).stem}", 0, episode_stats(batch, env_name))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("cells", nargs="+", type=Path, help="cell JSON files (<suite output>/cells/<env>/<method>/)")
     parser.add_argument("--steps", type=int, nargs="*", default=None, help="adaptation steps to print (default: all)")
     parser.add_argument("--stand-still", action="store_true", help="add zero actions per env and seed")
+    parser.add_argument("--maml-checkpoints", nargs="*", default=[],
+                        help="step_*.pt files of MAML runs: their policies at k = 0 on the cells' env, tasks and seed "
+                             "(e.g. along meta-training)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (the suite's cells use 1)")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args()
@@ -130,9 +147,11 @@ def main() -> None:
             print(line, flush=True)
         cell = json.loads(path.read_text())
         baselines[cell["env"], cell["seed"]] = AdaptationConfig(**cell["protocol"]), num_tasks(path, cell)
-    if args.stand_still:
-        for (env_name, seed), (config, tasks) in sorted(baselines.items()):
+    for (env_name, seed), (config, tasks) in sorted(baselines.items()):
+        if args.stand_still:
             print(stand_still(env_name, seed, config, tasks), flush=True)
+        for path in args.maml_checkpoints:
+            print(zero_shot(path, env_name, seed, config, tasks), flush=True)
 
 
 if __name__ == "__main__":

@@ -74,8 +74,13 @@ def test_episode_lengths_replays_a_cell_with_its_own_episodes(tmp_path):
 
     cell = run_cell(CellSpec(method="scratch", env="point_nav", seed=3, output=str(tmp_path / "cell.csv"), num_tasks=3,
                              protocol=AdaptationConfig(num_steps=2, num_trajectories=4)))
+    maml = tmp_path / "maml"
+    subprocess.run([sys.executable, str(REPO / "recipes" / "maml.py"), "iterations=1", "meta_batch_size=2",
+                    "trajectories_per_task=2", "env.horizon=5", "logger.backend=none", "progress=false",
+                    f"output_dir={maml}"], capture_output=True, text=True, timeout=300, check=True, cwd=REPO)
     out = subprocess.run([sys.executable, str(REPO / "benchmarks" / "episode_lengths.py"),
-                          str(Path(cell).with_suffix(".json")), "--stand-still"],
+                          str(Path(cell).with_suffix(".json")), "--stand-still", "--maml-checkpoints",
+                          str(maml / "checkpoints" / "step_1.pt")],
                          capture_output=True, text=True, timeout=300, check=True, cwd=REPO).stdout
     rows = [line.split() for line in out.splitlines()[1:]]
     replayed = [r for r in rows if r[0] == "point_nav/scratch/seed3"]
@@ -90,6 +95,8 @@ def test_episode_lengths_replays_a_cell_with_its_own_episodes(tmp_path):
 
     expected = -100 * get_task_family("point_nav").eval_tasks(3).norm(dim=-1).mean().item()
     assert abs(float(still[2]) - expected) < 0.05 and still[3:5] == ["100.0", "0.00"]
+    (zero_shot,) = [r for r in rows if r[0].endswith("/step_1")]  # the MAML policy, unadapted, on the same tasks
+    assert zero_shot[1] == "0" and 1 <= float(zero_shot[3]) <= 100
 
 
 def test_episode_stats_counts_first_episodes_and_ant_jumps():
