@@ -33,7 +33,7 @@ from umrl.envs.mujoco_batched import AntBatchedEnv
 from umrl.envs.tasks import get_task_family
 from umrl.metatest import AdaptationConfig, CellSpec, load_initialisation, meta_test
 from umrl.metatest.protocol import make_eval_env
-from umrl.objectives.policy_gradient import episode_lengths
+from umrl.objectives.policy_gradient import episode_lengths, episode_returns
 from umrl.rollout import collect
 from umrl.runtime import seed_everything
 from umrl.trajectories import trajectory_mask
@@ -47,13 +47,12 @@ HEADER = (f"{'cell':<28}{'k':>4}{'return':>10}{'length':>8}{'terminated':>12}{'r
 def episode_stats(batch: TensorDictBase, env_name: str) -> dict[str, float]:
     """Means over a ``[T, N, H]`` batch's first episodes: return, length, fraction terminated, reward per step and
     (ant, else NaN) the fraction terminated by a jump."""
-    mask = trajectory_mask(batch["next", "done"])
-    reward = batch["next", "reward"].squeeze(-1)
-    length = episode_lengths(batch).float()
-    terminated = batch["next", "terminated"].squeeze(-1) & mask  # the step where the env ended a first episode
-    stats = {"return": (reward * mask).sum(-1).mean().item(), "length": length.mean().item(),
+    returns, length = episode_returns(batch), episode_lengths(batch).float()
+    # the step where the env ended a first episode
+    terminated = batch["next", "terminated"].squeeze(-1) & trajectory_mask(batch["next", "done"])
+    stats = {"return": returns.mean().item(), "length": length.mean().item(),
              "terminated": terminated.any(-1).float().mean().item(),
-             "reward/step": ((reward * mask).sum() / mask.sum()).item(), "jumped": float("nan")}
+             "reward/step": (returns.sum() / length.sum()).item(), "jumped": float("nan")}
     if env_name == "ant":
         above = batch["next", "observation"][..., ANT_TORSO_Z] > AntBatchedEnv.HEALTHY_Z_RANGE[1]
         stats["jumped"] = (terminated & above).any(-1).float().mean().item()
@@ -74,19 +73,19 @@ def num_tasks(path: Path, cell: dict) -> int:
         return len({row["task"] for row in csv.DictReader(rows)})
 
 
-def replay_cell(path: Path, steps: set[int] | None, device: str) -> list[str]:
-    """Replay the cell recorded in ``path`` (its JSON); one printed row per adaptation step in ``steps``."""
-    cell = json.loads(path.read_text())
-    config = AdaptationConfig(**cell["protocol"])
+def replay_cell(cell: dict, config: AdaptationConfig, tasks: torch.Tensor, steps: set[int] | None,
+                device: str) -> list[str]:
+    """Replay ``cell`` (its JSON) on ``tasks`` with its protocol ``config``: one row per adaptation step in
+    ``steps``."""
     init = load_initialisation(cell["method"], cell["env"], cell["checkpoint"], seed=cell["seed"], device=device)
-    tasks = get_task_family(cell["env"]).eval_tasks(num_tasks(path, cell))
     per_step: dict[int, dict[str, float]] = {}
 
     def observe(k: int, batch: TensorDictBase) -> None:
         per_step[k] = episode_stats(batch, cell["env"])
 
     returns, _ = meta_test(init, cell["env"], tasks, lr=cell["lr"], seed=cell["seed"], config=config,
-                           skill_trajectories=cell.get("skill_trajectories", CellSpec.skill_trajectories), device=device, observe=observe)
+                           skill_trajectories=cell.get("skill_trajectories", CellSpec.skill_trajectories),
+                           device=device, observe=observe)
     label = f"{cell['env']}/{cell['method']}/seed{cell['seed']}"
     rows = []
     for k, stats in per_step.items():
@@ -96,31 +95,20 @@ def replay_cell(path: Path, steps: set[int] | None, device: str) -> list[str]:
     return rows
 
 
-def stand_still(env_name: str, seed: int, config: AdaptationConfig, num_tasks: int) -> str:
-    """Zero actions on the cells' tasks and seed (no adaptation): the return of not moving."""
+def unadapted(policy, env_name: str, seed: int, config: AdaptationConfig, tasks: torch.Tensor) -> dict[str, float]:
+    """:func:`episode_stats` of ``policy`` (``None``: zero actions) on ``tasks`` without adaptation (k = 0), seeded
+    and rolled out as a cell's first step is."""
     seed_everything(seed)
-    env = make_eval_env(env_name, get_task_family(env_name).eval_tasks(num_tasks), config.num_trajectories,
-                        seed=seed, horizon=config.horizon)
-
-    def zero_action(td: TensorDictBase) -> TensorDictBase:
-        return td.set("action", torch.zeros(env.action_spec.shape))
-
-    with torch.no_grad():
-        batch = env.rollout(config.horizon, policy=zero_action, auto_reset=True, break_when_any_done=False)
+    env = make_eval_env(env_name, tasks, config.num_trajectories, seed=seed, horizon=config.horizon)
+    if policy is None:
+        with torch.no_grad():
+            batch = env.rollout(config.horizon, policy=lambda td: td.set("action", torch.zeros(env.action_spec.shape)),
+                                auto_reset=True, break_when_any_done=False)
+        batch = batch.view(len(tasks), config.num_trajectories, config.horizon)
+    else:
+        batch = collect(env, policy, num_tasks=len(tasks), horizon=config.horizon)
     env.close()
-    batch = batch.view(num_tasks, config.num_trajectories, config.horizon)
-    return row(f"{env_name}/stand_still/seed{seed}", 0, episode_stats(batch, env_name))
-
-
-def zero_shot(path: str, env_name: str, seed: int, config: AdaptationConfig, num_tasks: int) -> str:
-    """A MAML checkpoint's policy on the evaluation tasks without adaptation (k = 0), as a cell would roll it out."""
-    seed_everything(seed)
-    policy, _ = load_maml_policy(path)
-    env = make_eval_env(env_name, get_task_family(env_name).eval_tasks(num_tasks), config.num_trajectories,
-                        seed=seed, horizon=config.horizon)
-    batch = collect(env, policy, num_tasks=num_tasks, horizon=config.horizon)
-    env.close()
-    return row(f"{Path(path).parent.parent.name[:20]}/{Path(path).stem}", 0, episode_stats(batch, env_name))
+    return episode_stats(batch, env_name)
 
 
 def main() -> None:
@@ -143,15 +131,19 @@ def main() -> None:
     print(HEADER)
     baselines = {}
     for path in args.cells:
-        for line in replay_cell(path, steps, args.device):
-            print(line, flush=True)
         cell = json.loads(path.read_text())
-        baselines[cell["env"], cell["seed"]] = AdaptationConfig(**cell["protocol"]), num_tasks(path, cell)
+        config = AdaptationConfig(**cell["protocol"])
+        tasks = get_task_family(cell["env"]).eval_tasks(num_tasks(path, cell))
+        for line in replay_cell(cell, config, tasks, steps, args.device):
+            print(line, flush=True)
+        baselines[cell["env"], cell["seed"]] = config, tasks
     for (env_name, seed), (config, tasks) in sorted(baselines.items()):
         if args.stand_still:
-            print(stand_still(env_name, seed, config, tasks), flush=True)
+            print(row(f"{env_name}/stand_still/seed{seed}", 0, unadapted(None, env_name, seed, config, tasks)),
+                  flush=True)
         for path in args.maml_checkpoints:
-            print(zero_shot(path, env_name, seed, config, tasks), flush=True)
+            label = f"{Path(path).parent.parent.name[:20]}/{Path(path).stem}"
+            print(row(label, 0, unadapted(load_maml_policy(path)[0], env_name, seed, config, tasks)), flush=True)
 
 
 if __name__ == "__main__":

@@ -27,8 +27,9 @@ Runs UML-DIAYN, UML-random, oracle, VIME-init, DIAYN-init and scratch on the cho
 4. **Reports** (built by :mod:`umrl.metatest.results`) under ``output_dir`` from the cells of *this* config only:
    ``results.csv`` (tidy: method, env, seed, task, step, return, length, lr_schedule), ``summary.md`` (return at
    k = 0, 1, 5, K and AUC: IQM and mean with bootstrap CIs; mean episode length at k = 0 and K where episodes end
-   early; pre-training seeds; commit, command, hardware and wall time), ``curves.png``, ``ablation.png`` / ``ablation.md``, ``config.yaml`` (the validated config) and wandb runs
-   (offline by default, under ``output_dir/wandb``) in one group per suite run.
+   early; pre-training seeds; commit, command, hardware and wall time), ``curves.png``, ``ablation.png`` /
+   ``ablation.md``, ``config.yaml`` (the validated config) and wandb runs (offline by default, under
+   ``output_dir/wandb``) in one group per suite run.
 
 This file plans and reports only: the jobs run through :mod:`umrl.launch`, what a cell computes and how results are
 tabulated live in :mod:`umrl.metatest`. Jobs run as fresh worker processes (``launcher.workers`` at a time; their

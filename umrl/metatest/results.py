@@ -145,9 +145,9 @@ def summary_table(rows: Sequence[Mapping], *, steps: Sequence[int] = (0, 1, 5), 
         num_steps = run_matrix(rows, env=env, method=order[0]).shape[1] - 1
         ks = sorted({k for k in steps if k <= num_steps} | {num_steps})
         env_rows = [r for r in rows if r["env"] == env]
-        lengths = all("length" in r for r in env_rows) and len({r["length"] for r in env_rows}) > 1
+        show_lengths = all("length" in r for r in env_rows) and len({r["length"] for r in env_rows}) > 1
         header = ["method"] + [f"k={k} IQM [95% CI]" for k in ks] + ["AUC IQM [95% CI]", "AUC mean [95% CI]", "runs"]
-        header += [f"episode length k=0 / k={num_steps} (mean)"] if lengths else []
+        header += [f"episode length k=0 / k={num_steps} (mean)"] if show_lengths else []
         lines += [f"### {env}", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
         for method in order:
             matrix = run_matrix(rows, env=env, method=method)
@@ -161,7 +161,7 @@ def summary_table(rows: Sequence[Mapping], *, steps: Sequence[int] = (0, 1, 5), 
             cells.append(f"{s['iqm']:.1f} [{s['iqm_low']:.1f}, {s['iqm_high']:.1f}]")
             cells.append(f"{s['mean']:.1f} [{s['mean_low']:.1f}, {s['mean_high']:.1f}]")
             cells.append(str(matrix.shape[0]))
-            if lengths:
+            if show_lengths:
                 length = run_matrix(rows, env=env, method=method, value="length")
                 ends = [summarize(length[:, k], confidence=confidence) for k in (0, num_steps)]
                 records += [{"env": env, "method": method, "metric": f"length_k{k}", **e}
