@@ -29,6 +29,8 @@ import torch
 from tensordict import TensorDictBase
 
 from umrl.checkpoints import load_maml_policy
+from umrl.envs import get_env_spec
+from umrl.envs.builtin import ANT
 from umrl.envs.mujoco_batched import AntBatchedEnv
 from umrl.envs.tasks import get_task_family
 from umrl.metatest import AdaptationConfig, CellSpec, load_initialisation, meta_test
@@ -53,7 +55,7 @@ def episode_stats(batch: TensorDictBase, env_name: str) -> dict[str, float]:
     stats = {"return": returns.mean().item(), "length": length.mean().item(),
              "terminated": terminated.any(-1).float().mean().item(),
              "reward/step": (returns.sum() / length.sum()).item(), "jumped": float("nan")}
-    if env_name == "ant":
+    if get_env_spec(env_name).make is ANT.make:  # the Ant CMP, whatever its task reward (ant, ant_maml_reward)
         above = batch["next", "observation"][..., ANT_TORSO_Z] > AntBatchedEnv.HEALTHY_Z_RANGE[1]
         stats["jumped"] = (terminated & above).any(-1).float().mean().item()
     return stats

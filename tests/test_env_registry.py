@@ -62,7 +62,7 @@ def line_env():
     unregister_env("line")
 
 
-@pytest.mark.parametrize("name", ["point_nav", "half_cheetah", "ant"])
+@pytest.mark.parametrize("name", ["point_nav", "half_cheetah", "ant", "ant_maml_reward"])
 def test_builtin_records_match_their_envs(name):
     spec = get_env_spec(name)
     env = make_env(name, 2, seed=0, horizon=3)

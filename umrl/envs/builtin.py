@@ -7,8 +7,14 @@ point_nav       2        2        50      goals U[-0.5, 0.5]²   final ``"positi
 half_cheetah    17       6        20      speeds U[0, 2]        mean ``"x_velocity"``
 ant             107      8        20      goals U[-3, 3]²       final ``"xy_position"``, 0.25 cells
 ==============  =======  =======  ======  ====================  ===========================================
+
+``ant_maml_reward`` (an ablation, not in PROTOCOL.md) is ``ant`` with the MAML reference code's goal reward
+(:data:`umrl.envs.tasks.ant_goal_reward_maml_code`): the same CMP, skills, tasks and evaluation goals, so DIAYN and
+UML runs of ``ant`` serve it unchanged (the suite's ``pretrain.<recipe>.reuse``).
 """
 from __future__ import annotations
+
+from dataclasses import replace
 
 import torch
 from torchrl.envs import EnvBase
@@ -18,6 +24,7 @@ from umrl.envs.registry import EnvSpec, register_env
 from umrl.envs.tasks import (
     TaskFamily,
     ant_goal_reward,
+    ant_goal_reward_maml_code,
     goal_distance_reward,
     goal_within,
     target_velocity_reward,
@@ -62,5 +69,9 @@ ANT = register_env(EnvSpec(
     physics_keys={"xy_position": 2, "x_velocity": 1, "reward_survive": 1, "reward_contact": 1},
     coverage_key="xy_position", coverage_cell=0.25,
 ))
+ANT_MAML_REWARD = register_env(replace(
+    ANT, name="ant_maml_reward",
+    task_family=replace(ANT.task_family, env_name="ant_maml_reward", reward_fn=ant_goal_reward_maml_code),
+))
 
-__all__ = ["ANT", "HALF_CHEETAH", "POINT_NAV", "make_point_nav", "mujoco_maker"]
+__all__ = ["ANT", "ANT_MAML_REWARD", "HALF_CHEETAH", "POINT_NAV", "make_point_nav", "mujoco_maker"]
