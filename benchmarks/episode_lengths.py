@@ -14,7 +14,9 @@ seed, learning rate and protocol through ``umrl.metatest.meta_test``, so the epi
 replayed mean returns are compared with those the cell recorded (``match`` column: the largest difference; the suite
 runs cells on one torch thread, as ``--threads`` does by default). Printed per cell and adaptation step ``k``: the
 mean return, the mean episode length, the fraction of episodes the env terminated (not the horizon's truncation),
-the mean reward per step and, on ant, the fraction terminated by a jump (the torso above the healthy range).
+the mean reward per step, on ant the fraction terminated by a jump (the torso above the healthy range), and the mean
+end error: how far each episode ended from its task (final x-y to the goal; half_cheetah: mean velocity to the
+target), whatever the reward's shaping.
 ``--stand-still`` adds, per env and seed, zero actions on the same tasks (no adaptation); ``--maml-checkpoints`` adds
 MAML checkpoints' policies there at k = 0 (for instance the ones a run kept along meta-training).
 """
@@ -38,23 +40,29 @@ from umrl.metatest.protocol import make_eval_env
 from umrl.objectives.policy_gradient import episode_lengths, episode_returns
 from umrl.rollout import collect
 from umrl.runtime import seed_everything
+from umrl.skill_coverage import final_states
 from umrl.trajectories import trajectory_mask
 
 #: ant's observation keeps x-y, so qpos[2], the torso height, is observation dim 2
 ANT_TORSO_Z = 2
 HEADER = (f"{'cell':<28}{'k':>4}{'return':>10}{'length':>8}{'terminated':>12}{'reward/step':>13}"
-          f"{'jumped':>8}{'match':>10}")
+          f"{'jumped':>8}{'end error':>11}{'match':>10}")
 
 
 def episode_stats(batch: TensorDictBase, env_name: str) -> dict[str, float]:
-    """Means over a ``[T, N, H]`` batch's first episodes: return, length, fraction terminated, reward per step and
-    (ant, else NaN) the fraction terminated by a jump."""
+    """Means over a ``[T, N, H]`` batch's first episodes: return, length, fraction terminated, reward per step,
+    (Ant, else NaN) the fraction terminated by a jump, and the end error: the distance between the episode's
+    coverage point (final x-y, or mean forward velocity: :func:`umrl.skill_coverage.final_states`) and its task,
+    which does not depend on how the reward is shaped."""
     returns, length = episode_returns(batch), episode_lengths(batch).float()
+    episodes = batch.reshape(-1, batch.shape[-1])  # [T * N, H]
+    end_error = (final_states(episodes, env_name)["end_point"] - episodes["task"][:, 0]).norm(dim=-1)
     # the step where the env ended a first episode
     terminated = batch["next", "terminated"].squeeze(-1) & trajectory_mask(batch["next", "done"])
     stats = {"return": returns.mean().item(), "length": length.mean().item(),
              "terminated": terminated.any(-1).float().mean().item(),
-             "reward/step": (returns.sum() / length.sum()).item(), "jumped": float("nan")}
+             "reward/step": (returns.sum() / length.sum()).item(), "jumped": float("nan"),
+             "end error": end_error.mean().item()}
     if get_env_spec(env_name).make is ANT.make:  # the Ant CMP, whatever its task reward (ant, ant_maml_reward)
         above = batch["next", "observation"][..., ANT_TORSO_Z] > AntBatchedEnv.HEALTHY_Z_RANGE[1]
         stats["jumped"] = (terminated & above).any(-1).float().mean().item()
@@ -64,7 +72,7 @@ def episode_stats(batch: TensorDictBase, env_name: str) -> dict[str, float]:
 def row(label: str, k: int, stats: dict[str, float], match: str = "") -> str:
     jumped = "" if stats["jumped"] != stats["jumped"] else f"{stats['jumped']:.2f}"  # NaN: not ant
     return (f"{label:<28}{k:>4}{stats['return']:>10.1f}{stats['length']:>8.1f}{stats['terminated']:>12.2f}"
-            f"{stats['reward/step']:>13.3f}{jumped:>8}{match:>10}")
+            f"{stats['reward/step']:>13.3f}{jumped:>8}{stats['end error']:>11.3f}{match:>10}")
 
 
 def num_tasks(path: Path, cell: dict) -> int:

@@ -3,6 +3,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+import torch
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -85,31 +88,55 @@ def test_episode_lengths_replays_a_cell_with_its_own_episodes(tmp_path):
     rows = [line.split() for line in out.splitlines()[1:]]
     replayed = [r for r in rows if r[0] == "point_nav/scratch/seed3"]
     assert [int(r[1]) for r in replayed] == [0, 1, 2]
-    for _, _, ret, length, terminated, per_step, match in replayed:
+    for _, _, ret, length, terminated, per_step, end_error, match in replayed:
         assert float(match) == 0.0  # the cell's recorded mean return, exactly
         assert 1 <= float(length) <= 100 and 0 <= float(terminated) <= 1
         assert abs(float(ret) - float(length) * float(per_step)) < 0.05 * float(length) + 0.05
+        assert 0 <= float(end_error) < 100 * 0.1 * 2**0.5 + 0.5  # the goal is within 0.5 and a step moves <= 0.1
     (still,) = [r for r in rows if r[0] == "point_nav/stand_still/seed3"]
     # zero actions never leave the origin: every step costs the goal's distance, for all 100 steps
     from umrl.envs import get_task_family
 
     expected = -100 * get_task_family("point_nav").eval_tasks(3).norm(dim=-1).mean().item()
     assert abs(float(still[2]) - expected) < 0.05 and still[3:5] == ["100.0", "0.00"]
+    assert abs(float(still[6]) - expected / -100) < 1e-3  # it ends where it started: the goal's distance away
     (zero_shot,) = [r for r in rows if r[0].endswith("/step_1")]  # the MAML policy, unadapted, on the same tasks
     assert zero_shot[1] == "0" and 1 <= float(zero_shot[3]) <= 100
 
 
-def test_episode_stats_counts_first_episodes_and_ant_jumps():
-    import torch
-    from script_loading import load_script
+def _ended_batch(**next_keys):
+    """[T=1, N=2, H=3]: copy 0 terminates at step 1, copy 1 at step 2; reward 1 per step; tasks (1, 0)."""
     from tensordict import TensorDict
 
+    terminated = torch.tensor([[[False], [True], [False]], [[False], [False], [True]]])[None]
+    keys = {"reward": torch.ones(1, 2, 3, 1), "done": terminated, "terminated": terminated,
+            "observation": torch.zeros(1, 2, 3, 107), **next_keys}
+    return TensorDict({"task": torch.tensor([1.0, 0.0]).expand(1, 2, 3, 2), "next": keys}, [1, 2, 3])
+
+
+@pytest.mark.parametrize("env_name", ["ant", "ant_maml_reward"])
+def test_episode_stats_counts_first_episodes_and_ant_jumps(env_name):
+    from script_loading import load_script
+
     bench = load_script("benchmarks/episode_lengths.py")
-    terminated = torch.tensor([[[False], [True], [False]], [[False], [False], [True]]])[None]  # [T=1, N=2, H=3, 1]
     observation = torch.zeros(1, 2, 3, 107)
     observation[0, 0, 1, 2] = 1.2  # copy 0 ends at step 1 with its torso above 1.0 (a jump), copy 1 at step 2 (below)
-    batch = TensorDict({"next": {"reward": torch.ones(1, 2, 3, 1), "done": terminated, "terminated": terminated,
-                                 "observation": observation}}, [1, 2, 3])
-    stats = bench.episode_stats(batch, "ant")
-    assert stats == {"return": 2.5, "length": 2.5, "terminated": 1.0, "reward/step": 1.0, "jumped": 0.5}
-    assert bench.episode_stats(batch, "half_cheetah")["jumped"] != bench.episode_stats(batch, "half_cheetah")["jumped"]
+    xy = torch.zeros(1, 2, 3, 2)
+    xy[0, 0, 1] = torch.tensor([1.0, 3.0])  # copy 0 ends 3 from its goal (1, 0), copy 1 ends 5 from it
+    xy[0, 1, 2] = torch.tensor([4.0, 4.0])
+    batch = _ended_batch(observation=observation, xy_position=xy)
+    stats = bench.episode_stats(batch, env_name)
+    assert stats == {"return": 2.5, "length": 2.5, "terminated": 1.0, "reward/step": 1.0, "jumped": 0.5,
+                     "end error": 4.0}
+
+
+def test_episode_stats_end_error_of_a_velocity_task_uses_the_mean_velocity():
+    from script_loading import load_script
+
+    bench = load_script("benchmarks/episode_lengths.py")
+    velocity = torch.tensor([[[1.0], [3.0], [9.0]], [[0.0], [1.0], [2.0]]])[None]  # copy 0's step 2 is past its end
+    batch = _ended_batch(x_velocity=velocity)
+    batch["task"] = torch.full((1, 2, 3, 1), 1.5)
+    stats = bench.episode_stats(batch, "half_cheetah")
+    assert stats["jumped"] != stats["jumped"]  # NaN: not the Ant CMP
+    assert stats["end error"] == pytest.approx((abs(2.0 - 1.5) + abs(1.0 - 1.5)) / 2)
