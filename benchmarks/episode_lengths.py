@@ -45,7 +45,7 @@ from umrl.trajectories import trajectory_mask
 
 #: ant's observation keeps x-y, so qpos[2], the torso height, is observation dim 2
 ANT_TORSO_Z = 2
-HEADER = (f"{'cell':<28}{'k':>4}{'return':>10}{'length':>8}{'terminated':>12}{'reward/step':>13}"
+HEADER = (f"{'cell':<36}{'k':>4}{'return':>10}{'length':>8}{'terminated':>12}{'reward/step':>13}"
           f"{'jumped':>8}{'end error':>11}{'match':>10}")
 
 
@@ -71,7 +71,7 @@ def episode_stats(batch: TensorDictBase, env_name: str) -> dict[str, float]:
 
 def row(label: str, k: int, stats: dict[str, float], match: str = "") -> str:
     jumped = "" if stats["jumped"] != stats["jumped"] else f"{stats['jumped']:.2f}"  # NaN: not ant
-    return (f"{label:<28}{k:>4}{stats['return']:>10.1f}{stats['length']:>8.1f}{stats['terminated']:>12.2f}"
+    return (f"{label:<36}{k:>4}{stats['return']:>10.1f}{stats['length']:>8.1f}{stats['terminated']:>12.2f}"
             f"{stats['reward/step']:>13.3f}{jumped:>8}{stats['end error']:>11.3f}{match:>10}")
 
 
