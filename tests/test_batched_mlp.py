@@ -1,16 +1,12 @@
-"""Task-batched policy evaluation: agrees with a per-task functional_call loop; its ReLU differentiates like torch's
-without zero fills; device plumbing of the MAML step."""
-from collections import Counter
-
+"""Task-batched policy evaluation: agrees with a per-task functional_call loop; device plumbing of the MAML step."""
 import pytest
 import torch
 from tensordict import TensorDict
 from torch import nn
 from torch.func import functional_call
-from torch.utils._python_dispatch import TorchDispatchMode
 
 from umrl.envs import get_task_family, make_task_env
-from umrl.modules.batched_mlp import BatchedGaussianMLP, relu
+from umrl.modules.batched_mlp import BatchedGaussianMLP
 from umrl.modules.policy import make_gaussian_policy
 from umrl.objectives.maml import MAMLLoss
 from umrl.objectives.policy_gradient import compute_advantages
@@ -74,42 +70,6 @@ def test_batched_dist_params_match_the_per_task_loop(in_keys):
     for key in ("loc", "scale"):
         assert batched[key].shape == (T, N, H, ACT)
         torch.testing.assert_close(batched[key], reference[key], rtol=1e-12, atol=1e-12)
-
-
-class _CountOps(TorchDispatchMode):
-    def __init__(self):
-        super().__init__()
-        self.ops = Counter()
-
-    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-        self.ops[func.overloadpacket.__name__] += 1
-        return func(*args, **(kwargs or {}))
-
-
-def _meta_gradients(act):
-    """First-order gradients of a 2-layer batched net, the gradient after one step along them (through the step) and
-    the gradient of that (third order); the aten ops of the last two passes."""
-    g = torch.Generator().manual_seed(0)
-    x = torch.randn(3, 7, 4, generator=g, dtype=torch.float64)
-    w1, w2 = (torch.randn(3, *shape, generator=g, dtype=torch.float64, requires_grad=True) for shape in [(4, 5), (5, 2)])
-
-    def f(a, b):
-        return act(act(x @ a) @ b).pow(3).sum()
-
-    first = torch.autograd.grad(f(w1, w2), (w1, w2), create_graph=True)
-    with _CountOps() as counter:
-        second = torch.autograd.grad(f(w1 - 1e-3 * first[0], w2 - 1e-3 * first[1]), (w1, w2), create_graph=True)
-        third = torch.autograd.grad(sum(t.sum() for t in second), (w1, w2))
-    return [t.detach() for t in (*first, *second, *third)], counter.ops
-
-
-def test_relu_gradients_of_every_order_are_torchs_without_its_zero_fills():
-    expected, torch_ops = _meta_gradients(torch.relu)
-    got, ops = _meta_gradients(relu)
-    assert all(torch.equal(a, b) for a, b in zip(expected, got))
-    assert all(t.abs().sum() > 0 for t in got)
-    assert torch_ops["zeros_like"] > 0  # torch's ReLU double backward fills zeros ...
-    assert ops["zeros_like"] == 0 and ops["add"] < torch_ops["add"]  # ... and adds them; this one does neither
 
 
 def test_batched_maml_step_matches_the_per_task_loop():

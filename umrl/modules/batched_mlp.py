@@ -8,8 +8,7 @@ matmul, whose backward and double backward are batched matmuls too.
 :class:`BatchedGaussianMLP` reads the structure of the loc/scale network that
 :func:`umrl.modules.policy.make_gaussian_policy` builds — ``Sequential(MLP, AddStateIndependentNormalScale)``, the MLP
 made of ``nn.Linear`` and element-wise activations, optionally behind the policy's input concatenation — and returns
-``None`` for any other network, so callers fall back to ``vmap``. Its ReLU layers run as :func:`relu`, whose
-derivatives of every order are torch's without the zero tensors torch's double backward adds.
+``None`` for any other network, so callers fall back to ``vmap``.
 """
 from __future__ import annotations
 
@@ -21,35 +20,9 @@ from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule
 from tensordict.nn.utils import mappings
 from torch import nn
 
-__all__ = ["BatchedGaussianMLP", "relu"]
+__all__ = ["BatchedGaussianMLP"]
 
 _ELEMENTWISE = (nn.ReLU, nn.Tanh, nn.ELU, nn.LeakyReLU, nn.SiLU, nn.GELU, nn.Sigmoid, nn.Softplus, nn.Identity)
-
-
-class _ReLU(torch.autograd.Function):
-    @staticmethod
-    def forward(x: torch.Tensor) -> torch.Tensor:
-        return torch.relu(x)
-
-    @staticmethod
-    def setup_context(ctx, inputs, output) -> None:
-        ctx.save_for_backward(output)
-
-    @staticmethod
-    def backward(ctx, grad: torch.Tensor) -> torch.Tensor:
-        (output,) = ctx.saved_tensors
-        return torch.ops.aten.threshold_backward(grad, output.detach(), 0)
-
-
-def relu(x: torch.Tensor) -> torch.Tensor:
-    """``torch.relu(x)`` whose backward reads the output as a constant.
-
-    torch's ReLU backward, ``threshold_backward(grad, output, 0)``, is also differentiated in ``output``, where its
-    derivative is a zero tensor (ReLU'' = 0): each pass that differentiates a gradient again (MAML's meta-gradient
-    through the inner step, TRPO's Hessian-vector products through that) fills one per layer and adds it into the
-    activation's gradient. Here that derivative is left out; every gradient, of any order, is torch's to the bit.
-    """
-    return _ReLU.apply(x)
 
 
 class BatchedGaussianMLP:
@@ -63,7 +36,7 @@ class BatchedGaussianMLP:
 
     def __init__(self, in_keys: list, layers: list, scale_key: tuple, scale_map: Callable, scale_lb: float):
         self.in_keys = in_keys
-        self.layers = layers  # ("linear", weight_key, bias_key | None) or ("act", element-wise callable)
+        self.layers = layers  # ("linear", weight_key, bias_key | None) or ("act", module)
         self.scale_key = scale_key
         self.scale_map = scale_map
         self.scale_lb = scale_lb
@@ -94,7 +67,7 @@ class BatchedGaussianMLP:
                 bias = (*prefix, "0", name, "bias") if layer.bias is not None else None
                 layers.append(("linear", (*prefix, "0", name, "weight"), bias))
             elif type(layer) in _ELEMENTWISE:
-                layers.append(("act", relu if type(layer) is nn.ReLU else layer))
+                layers.append(("act", layer))
             else:
                 return None
         return cls(list(mods[0].in_keys), layers, (*prefix, "1", "state_independent_scale"),
