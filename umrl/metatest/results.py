@@ -112,6 +112,12 @@ def _ordered_arms(rows: Sequence[Mapping], env: str, methods: Sequence[str] | No
     return [arm_label(*arm) for arm in ranked]
 
 
+def mean_curve(matrix: np.ndarray, *, confidence: float = 0.95) -> Curve:
+    """Mean over runs of a ``[runs, K + 1]`` matrix (:func:`run_matrix`) per step, with a bootstrap CI band."""
+    bands = np.array([bootstrap_ci(matrix[:, k], confidence=confidence) for k in range(matrix.shape[1])])
+    return Curve(np.arange(matrix.shape[1]), matrix.mean(0), bands[:, 0], bands[:, 1])
+
+
 def curves_from_rows(rows: Sequence[Mapping], *, methods: Sequence[str] | None = None,
                      confidence: float = 0.95) -> dict[str, dict[str, Curve]]:
     """``{env: {arm label: Curve}}``: mean return per step over (seed, task) runs with bootstrap CI bands.
@@ -121,10 +127,8 @@ def curves_from_rows(rows: Sequence[Mapping], *, methods: Sequence[str] | None =
     curves: dict[str, dict[str, Curve]] = {}
     for env in sorted({r["env"] for r in rows}):
         for label in _ordered_arms(rows, env, methods):
-            matrix = run_matrix(rows, env=env, method=label)
-            bands = np.array([bootstrap_ci(matrix[:, k], confidence=confidence) for k in range(matrix.shape[1])])
-            curves.setdefault(env, {})[label] = Curve(np.arange(matrix.shape[1]), matrix.mean(0), bands[:, 0],
-                                                      bands[:, 1])
+            curves.setdefault(env, {})[label] = mean_curve(run_matrix(rows, env=env, method=label),
+                                                           confidence=confidence)
     return curves
 
 
@@ -234,6 +238,7 @@ __all__ = [
     "arm_label",
     "arm_styles",
     "curves_from_rows",
+    "mean_curve",
     "pretraining_note",
     "read_rows",
     "run_matrix",

@@ -1,0 +1,116 @@
+"""Compare meta-test curves across suite runs: one arm from each of several ``results.csv`` files, side by side.
+
+    python benchmarks/compare_runs.py --env point_nav --horizons 20 100 \\
+        --run "UML-random, 20 it=uml_random (reference)@outputs/suite/long_seeds/results.csv" \\
+        --run "UML-random, 500 it=uml_random (reference)@outputs/suite/it500/results.csv" \\
+        --run "scratch (Adam)=scratch@outputs/suite/it500/results.csv" --out docs/budgets.png
+
+Each ``--run`` is ``LABEL=ARM@PATH``: the arm label as the suite's tables print it (``uml_diayn``,
+``uml_random (reference)``), read from ``PATH`` (a ``results.csv`` or the suite output folder holding one). This is
+how runs that differ in what the suite's cache keys on (MAML budgets, resumed copies of pre-training runs) are put
+in one table and one figure. Prints, per run, the IQM return at ``--steps`` and the AUC IQM [95 % bootstrap CI] over
+k = 0..K for each horizon K the run reaches (``—`` where it stops earlier), and draws one panel per horizon: mean
+return with a 95 % band; runs of the same method are shades of its colour, lighter first.
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+from matplotlib.colors import to_rgb
+
+from umrl.metatest import (
+    METHOD_COLORS,
+    arm_label,
+    auc,
+    mean_curve,
+    plot_adaptation_curves,
+    read_rows,
+    run_matrix,
+    summarize,
+)
+
+
+def parse_run(spec: str) -> tuple[str, str, Path]:
+    """``LABEL=ARM@PATH`` → ``(label, arm, results.csv path)``; a clear error for anything else."""
+    label, sep, rest = spec.partition("=")
+    arm, at, path = rest.rpartition("@")
+    if not (sep and at and label and arm and path):
+        raise SystemExit(f"--run: got {spec!r}; expected LABEL=ARM@PATH, e.g. "
+                         "'UML-DIAYN=uml_diayn (reference)@outputs/suite/quick/results.csv'.")
+    csv = Path(path) / "results.csv" if Path(path).is_dir() else Path(path)
+    if not csv.is_file():
+        raise SystemExit(f"--run {label!r}: {path!r} is neither a results.csv nor a folder holding one.")
+    return label, arm, csv
+
+
+def load_matrix(csv: Path, *, env: str, arm: str) -> np.ndarray:
+    """``[seeds x tasks, K + 1]`` returns of one arm; names the arms the file has when ``arm`` is not one of them."""
+    rows = read_rows([csv])
+    try:
+        return run_matrix(rows, env=env, method=arm)
+    except ValueError:
+        arms = sorted({(r["env"], arm_label(r["method"], r["lr_schedule"])) for r in rows})
+        raise SystemExit(f"{csv}: no arm {arm!r} on env {env!r}; it has " + ", ".join(f"{a!r} on {e}" for e, a in arms)
+                         + ".") from None
+
+
+def run_styles(labels_arms: list[tuple[str, str]]) -> dict[str, dict]:
+    """Line colour per run label: its method's colour, runs of one method shaded from light to full in given order."""
+    by_method: dict[str, list[str]] = {}
+    for label, arm in labels_arms:
+        by_method.setdefault(arm.split(" ")[0], []).append(label)
+    styles = {}
+    for method, labels in by_method.items():
+        base = np.array(to_rgb(METHOD_COLORS.get(method, "tab:olive")))
+        for i, label in enumerate(labels):
+            strength = 1.0 if len(labels) == 1 else 0.35 + 0.65 * i / (len(labels) - 1)
+            styles[label] = {"color": tuple(1.0 - strength * (1.0 - base))}
+    return styles
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--run", action="append", required=True, help="LABEL=ARM@PATH (repeat)")
+    parser.add_argument("--env", default="point_nav")
+    parser.add_argument("--horizons", type=int, nargs="+", default=[20, 100], help="K of each AUC column and panel")
+    parser.add_argument("--steps", type=int, nargs="*", default=[0, 1], help="k of the return columns")
+    parser.add_argument("--out", default=None, help="PNG of the curves (default: no figure)")
+    args = parser.parse_args()
+    for name in ("horizons", "steps"):
+        if any(k < (1 if name == "horizons" else 0) for k in getattr(args, name)):
+            raise SystemExit(f"--{name}: got {getattr(args, name)}; expected integers >= "
+                             f"{1 if name == 'horizons' else 0}.")
+    runs = [parse_run(spec) for spec in args.run]
+    if len({label for label, _, _ in runs}) < len(runs):
+        raise SystemExit(f"--run: labels must differ, got {[label for label, _, _ in runs]}.")
+    matrices = {label: load_matrix(csv, env=args.env, arm=arm) for label, arm, csv in runs}
+
+    header = ["run", "arm", "runs"] + [f"k={k} IQM" for k in args.steps]
+    header += [f"AUC k<={h} IQM [95% CI]" for h in args.horizons]
+    lines = [f"{args.env}: IQM over seeds x tasks", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for label, arm, _ in runs:
+        matrix = matrices[label]
+        last = matrix.shape[1] - 1
+        cells = [label, arm, str(matrix.shape[0])]
+        cells += [f"{summarize(matrix[:, k])['iqm']:.1f}" if k <= last else "—" for k in args.steps]
+        for horizon in args.horizons:
+            if horizon > last:
+                cells.append("—")
+                continue
+            s = summarize(auc(matrix[:, :horizon + 1]))
+            cells.append(f"{s['iqm']:.1f} [{s['iqm_low']:.1f}, {s['iqm_high']:.1f}]")
+        lines.append("| " + " | ".join(cells) + " |")
+    print("\n".join(lines))
+
+    if args.out:
+        panels = {f"{args.env}, k = 0..{h}": {label: mean_curve(m[:, :h + 1]) for label, m in matrices.items()
+                                              if m.shape[1] > h} for h in args.horizons}
+        panels = {panel: curves for panel, curves in panels.items() if curves}
+        styles = run_styles([(label, arm) for label, arm, _ in runs])
+        print(f"figure: {plot_adaptation_curves(panels, args.out, styles=styles)}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,72 @@
+"""benchmarks/compare_runs.py: one arm from each of several results files, AUC per horizon, one figure."""
+import runpy
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from umrl.metatest import to_rows, write_rows
+
+SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "compare_runs.py"
+
+
+def _cli(monkeypatch, capsys, *args):
+    monkeypatch.setattr(sys, "argv", ["compare_runs.py", *args])
+    runpy.run_path(str(SCRIPT), run_name="__main__")
+    return capsys.readouterr().out
+
+
+def _table(printed):
+    return {line.split(" | ")[0].lstrip("| "): line.strip("| ").split(" | ")
+            for line in printed.splitlines() if line.startswith("| ") and not line.startswith("| run ")}
+
+
+@pytest.fixture
+def two_runs(tmp_path):
+    """Run ``short`` (K = 4, ``uml_random`` with the reference schedule, and scratch) and run ``long`` (K = 8)."""
+    k4, k8 = np.arange(5.0)[:, None], np.arange(9.0)[:, None]
+    tasks = np.arange(4.0)[None, :]
+    short = to_rows(-(10.0 - k4) * (1 + tasks), np.full((5, 4), 100.0), method="uml_random", env="point_nav", seed=0,
+                    lr_schedule="reference")
+    short += to_rows(-np.ones((5, 4)), np.full((5, 4), 100.0), method="scratch", env="point_nav", seed=0)
+    long = to_rows(-(10.0 - k8) * (1 + tasks), np.full((9, 4), 100.0), method="uml_random", env="point_nav", seed=0,
+                   lr_schedule="reference")
+    write_rows(short, tmp_path / "short" / "results.csv")
+    write_rows(long, tmp_path / "long.csv")
+    return tmp_path
+
+
+def test_prints_iqm_auc_per_horizon_and_draws_a_panel_per_horizon(two_runs, monkeypatch, capsys):
+    out = two_runs / "curves.png"
+    printed = _cli(monkeypatch, capsys, "--horizons", "4", "8", "--steps", "0", "6", "--out", str(out),
+                   "--run", f"short=uml_random (reference)@{two_runs / 'short'}",
+                   "--run", f"long=uml_random (reference)@{two_runs / 'long.csv'}",
+                   "--run", f"scratch=scratch@{two_runs / 'short' / 'results.csv'}")
+    rows = _table(printed)
+    # task t's curve is -(10 - k)(1 + t): AUC over k = 0..4 is -(1 + t) * 32, over k = 0..8 -(1 + t) * 48; the IQM of
+    # four tasks averages the middle two (t = 1, 2)
+    assert rows["short"] == ["short", "uml_random (reference)", "4", "-25.0", "—", rows["short"][5], "—"]
+    assert rows["short"][5].startswith("-80.0 [")
+    assert rows["long"][3:5] == ["-25.0", "-10.0"] and rows["long"][5].startswith("-80.0 [")
+    assert rows["long"][6].startswith("-120.0 [")
+    assert rows["scratch"][3] == "-1.0" and rows["scratch"][5] == "-4.0 [-4.0, -4.0]" and rows["scratch"][6] == "—"
+    assert out.stat().st_size > 1000 and f"figure: {out}" in printed
+
+
+@pytest.mark.parametrize("spec, message", [
+    ("no-separators", "expected LABEL=ARM@PATH"),
+    ("x=scratch@/nowhere/results.csv", "neither a results.csv nor a folder"),
+    ("x=uml_diayn@{dir}/long.csv", "no arm 'uml_diayn' on env 'point_nav'; it has 'uml_random \\(reference\\)'"),
+])
+def test_bad_run_specs_are_refused_with_what_is_accepted(two_runs, monkeypatch, capsys, spec, message):
+    with pytest.raises(SystemExit, match=message):
+        _cli(monkeypatch, capsys, "--run", spec.format(dir=two_runs))
+
+
+def test_bad_horizons_and_duplicate_labels_are_refused(two_runs, monkeypatch, capsys):
+    run = f"a=scratch@{two_runs / 'short'}"
+    with pytest.raises(SystemExit, match=r"--horizons: got \[0\]; expected integers >= 1"):
+        _cli(monkeypatch, capsys, "--horizons", "0", "--run", run)
+    with pytest.raises(SystemExit, match="labels must differ"):
+        _cli(monkeypatch, capsys, "--run", run, "--run", run)
