@@ -15,6 +15,7 @@ from umrl.configs.maml import MAMLConfig
 from umrl.configs.suite import SuiteConfig
 from umrl.configs.validate import check_partial
 from umrl.configs.vime import VIMEConfig
+from umrl.envs import ENV_NAMES
 
 RECIPES = {"diayn": DIAYNConfig, "maml": MAMLConfig, "vime": VIMEConfig}
 SCHEMAS = {**RECIPES, "suite": SuiteConfig}
@@ -67,6 +68,17 @@ def test_profile_keys_are_schema_keys_with_valid_values(profile):
     values = load_yaml(f"benchmarks/config/profile/{profile}.yaml")
     assert yaml_keys(values, SuiteConfig) <= schema_keys(SuiteConfig)
     assert check_partial(values, SuiteConfig) == []
+
+
+@pytest.mark.parametrize("path", [*(f"recipes/config/{name}.yaml" for name in RECIPES), "benchmarks/config/suite.yaml"])
+def test_env_lists_in_config_comments_are_the_registered_envs(path):
+    """The comments beside ``env.name`` / ``envs`` list every registered env, and only those."""
+    comments = [line.split("#", 1)[1] for line in (REPO / path).read_text().splitlines()
+                if line.lstrip().startswith(("name:", "envs:")) and "point_nav |" in line]
+    assert len(comments) == 1
+    names = comments[0][comments[0].index("point_nav |"):]
+    listed = [word.split()[0] for word in names.split("|")]
+    assert listed == list(ENV_NAMES)
 
 
 @pytest.mark.parametrize("name,overrides", [
