@@ -9,8 +9,9 @@ Each ``--run`` is ``LABEL=ARM@PATH``: the arm label as the suite's tables print 
 ``uml_random (reference)``), read from ``PATH`` (a ``results.csv`` or the suite output folder holding one). This is
 how runs that differ in what the suite's cache keys on (MAML budgets, resumed copies of pre-training runs) are put
 in one table and one figure. Prints, per run, the IQM return at ``--steps`` and the AUC IQM [95 % bootstrap CI] over
-k = 0..K for each horizon K the run reaches (``—`` where it stops earlier), and draws one panel per horizon: mean
-return with a 95 % band; runs of the same method are shades of its colour, lighter first.
+k = 0..K for each horizon K the run reaches (``—`` where it stops earlier), then the AUC of each seed's mean curve
+over tasks (with independent pre-training per seed: one number per pre-training run), and draws one panel per
+horizon: mean return with a 95 % band; runs of the same method are shades of its colour, lighter first.
 """
 from __future__ import annotations
 
@@ -45,15 +46,15 @@ def parse_run(spec: str) -> tuple[str, str, Path]:
     return label, arm, csv
 
 
-def load_matrix(csv: Path, *, env: str, arm: str) -> np.ndarray:
-    """``[seeds x tasks, K + 1]`` returns of one arm; names the arms the file has when ``arm`` is not one of them."""
-    rows = read_rows([csv])
-    try:
-        return run_matrix(rows, env=env, method=arm)
-    except ValueError:
-        arms = sorted({(r["env"], arm_label(r["method"], r["lr_schedule"])) for r in rows})
+def load_seeds(csv: Path, *, env: str, arm: str) -> dict[int, np.ndarray]:
+    """``{seed: [tasks, K + 1] returns}`` of one arm; names the arms the file has when ``arm`` is not one of them."""
+    rows = [r for r in read_rows([csv]) if r["env"] == env and arm_label(r["method"], r["lr_schedule"]) == arm]
+    if not rows:
+        arms = sorted({(r["env"], arm_label(r["method"], r["lr_schedule"])) for r in read_rows([csv])})
         raise SystemExit(f"{csv}: no arm {arm!r} on env {env!r}; it has " + ", ".join(f"{a!r} on {e}" for e, a in arms)
-                         + ".") from None
+                         + ".")
+    seeds = sorted({r["seed"] for r in rows})
+    return {seed: run_matrix([r for r in rows if r["seed"] == seed], env=env, method=arm) for seed in seeds}
 
 
 def run_styles(labels_arms: list[tuple[str, str]]) -> dict[str, dict]:
@@ -85,7 +86,8 @@ def main() -> None:
     runs = [parse_run(spec) for spec in args.run]
     if len({label for label, _, _ in runs}) < len(runs):
         raise SystemExit(f"--run: labels must differ, got {[label for label, _, _ in runs]}.")
-    matrices = {label: load_matrix(csv, env=args.env, arm=arm) for label, arm, csv in runs}
+    per_seed = {label: load_seeds(csv, env=args.env, arm=arm) for label, arm, csv in runs}
+    matrices = {label: np.concatenate(list(seeds.values())) for label, seeds in per_seed.items()}
 
     header = ["run", "arm", "runs"] + [f"k={k} IQM" for k in args.steps]
     header += [f"AUC k<={h} IQM [95% CI]" for h in args.horizons]
@@ -101,6 +103,13 @@ def main() -> None:
                 continue
             s = summarize(auc(matrix[:, :horizon + 1]))
             cells.append(f"{s['iqm']:.1f} [{s['iqm_low']:.1f}, {s['iqm_high']:.1f}]")
+        lines.append("| " + " | ".join(cells) + " |")
+    header = ["run", "seeds"] + [f"AUC k<={h} of each seed's mean curve" for h in args.horizons]
+    lines += ["", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for label, seeds in per_seed.items():
+        cells = [label, " / ".join(map(str, seeds))]
+        cells += [" / ".join(f"{auc(m[:, :h + 1].mean(0)):.1f}" for m in seeds.values())
+                  if matrices[label].shape[1] > h else "—" for h in args.horizons]
         lines.append("| " + " | ".join(cells) + " |")
     print("\n".join(lines))
 

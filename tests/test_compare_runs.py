@@ -18,20 +18,24 @@ def _cli(monkeypatch, capsys, *args):
 
 
 def _table(printed):
-    return {line.split(" | ")[0].lstrip("| "): line.strip("| ").split(" | ")
-            for line in printed.splitlines() if line.startswith("| ") and not line.startswith("| run ")}
+    """The first table's rows by run label."""
+    first = printed.split("\n\n")[1]
+    return {line.strip("| ").split(" | ")[0]: line.strip("| ").split(" | ")
+            for line in first.splitlines() if not line.startswith(("| run ", "|---"))}
 
 
 @pytest.fixture
 def two_runs(tmp_path):
-    """Run ``short`` (K = 4, ``uml_random`` with the reference schedule, and scratch) and run ``long`` (K = 8)."""
+    """Run ``short`` (K = 4, ``uml_random`` with the reference schedule, and scratch) and run ``long`` (K = 8, two
+    seeds, the second's returns twice the first's)."""
     k4, k8 = np.arange(5.0)[:, None], np.arange(9.0)[:, None]
     tasks = np.arange(4.0)[None, :]
     short = to_rows(-(10.0 - k4) * (1 + tasks), np.full((5, 4), 100.0), method="uml_random", env="point_nav", seed=0,
                     lr_schedule="reference")
     short += to_rows(-np.ones((5, 4)), np.full((5, 4), 100.0), method="scratch", env="point_nav", seed=0)
-    long = to_rows(-(10.0 - k8) * (1 + tasks), np.full((9, 4), 100.0), method="uml_random", env="point_nav", seed=0,
-                   lr_schedule="reference")
+    long = [row for seed in (0, 1) for row in to_rows(-(10.0 - k8) * (1 + tasks) * (1 + seed), np.full((9, 4), 100.0),
+                                                      method="uml_random", env="point_nav", seed=seed,
+                                                      lr_schedule="reference")]
     write_rows(short, tmp_path / "short" / "results.csv")
     write_rows(long, tmp_path / "long.csv")
     return tmp_path
@@ -48,8 +52,12 @@ def test_prints_iqm_auc_per_horizon_and_draws_a_panel_per_horizon(two_runs, monk
     # four tasks averages the middle two (t = 1, 2)
     assert rows["short"] == ["short", "uml_random (reference)", "4", "-25.0", "—", rows["short"][5], "—"]
     assert rows["short"][5].startswith("-80.0 [")
-    assert rows["long"][3:5] == ["-25.0", "-10.0"] and rows["long"][5].startswith("-80.0 [")
-    assert rows["long"][6].startswith("-120.0 [")
+    # long's 8 runs (2 seeds x 4 tasks): the IQM averages the middle four values
+    assert rows["long"][2:5] == ["8", "-32.5", "-13.0"]
+    assert rows["long"][5].startswith("-104.0 [") and rows["long"][6].startswith("-156.0 [")
+    # each seed's mean curve over tasks is 2.5 (seed 0) or 5 (seed 1) times -(10 - k)
+    seeds = next(line for line in printed.splitlines() if line.startswith("| long | 0 / 1"))
+    assert seeds.strip("| ").split(" | ")[2:] == ["-80.0 / -160.0", "-120.0 / -240.0"]
     assert rows["scratch"][3] == "-1.0" and rows["scratch"][5] == "-4.0 [-4.0, -4.0]" and rows["scratch"][6] == "—"
     assert out.stat().st_size > 1000 and f"figure: {out}" in printed
 
