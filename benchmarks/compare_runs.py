@@ -25,6 +25,7 @@ from umrl.metatest import (
     METHOD_COLORS,
     arm_label,
     auc,
+    iqm,
     mean_curve,
     plot_adaptation_curves,
     read_rows,
@@ -48,9 +49,10 @@ def parse_run(spec: str) -> tuple[str, str, Path]:
 
 def load_seeds(csv: Path, *, env: str, arm: str) -> dict[int, np.ndarray]:
     """``{seed: [tasks, K + 1] returns}`` of one arm; names the arms the file has when ``arm`` is not one of them."""
-    rows = [r for r in read_rows([csv]) if r["env"] == env and arm_label(r["method"], r["lr_schedule"]) == arm]
+    all_rows = read_rows([csv])
+    rows = [r for r in all_rows if r["env"] == env and arm_label(r["method"], r["lr_schedule"]) == arm]
     if not rows:
-        arms = sorted({(r["env"], arm_label(r["method"], r["lr_schedule"])) for r in read_rows([csv])})
+        arms = sorted({(r["env"], arm_label(r["method"], r["lr_schedule"])) for r in all_rows})
         raise SystemExit(f"{csv}: no arm {arm!r} on env {env!r}; it has " + ", ".join(f"{a!r} on {e}" for e, a in arms)
                          + ".")
     seeds = sorted({r["seed"] for r in rows})
@@ -79,10 +81,9 @@ def main() -> None:
     parser.add_argument("--steps", type=int, nargs="*", default=[0, 1], help="k of the return columns")
     parser.add_argument("--out", default=None, help="PNG of the curves (default: no figure)")
     args = parser.parse_args()
-    for name in ("horizons", "steps"):
-        if any(k < (1 if name == "horizons" else 0) for k in getattr(args, name)):
-            raise SystemExit(f"--{name}: got {getattr(args, name)}; expected integers >= "
-                             f"{1 if name == 'horizons' else 0}.")
+    for name, least in (("horizons", 1), ("steps", 0)):
+        if min(getattr(args, name), default=least) < least:
+            raise SystemExit(f"--{name}: got {getattr(args, name)}; expected integers >= {least}.")
     runs = [parse_run(spec) for spec in args.run]
     if len({label for label, _, _ in runs}) < len(runs):
         raise SystemExit(f"--run: labels must differ, got {[label for label, _, _ in runs]}.")
@@ -96,7 +97,7 @@ def main() -> None:
         matrix = matrices[label]
         last = matrix.shape[1] - 1
         cells = [label, arm, str(matrix.shape[0])]
-        cells += [f"{summarize(matrix[:, k])['iqm']:.1f}" if k <= last else "—" for k in args.steps]
+        cells += [f"{iqm(matrix[:, k]):.1f}" if k <= last else "—" for k in args.steps]
         for horizon in args.horizons:
             if horizon > last:
                 cells.append("—")
