@@ -6,7 +6,7 @@ from torchrl.objectives import SoftUpdate
 
 from umrl.modules.discriminator import make_discriminator
 from umrl.modules.sac import make_skill_actor, make_skill_qvalue
-from umrl.objectives.diayn import DIAYNLoss, DIAYNUpdate, make_diayn_optimizers
+from umrl.objectives.diayn import DIAYNLoss, DIAYNUpdate, _distribution_kwargs_to, make_diayn_optimizers
 
 OBS, ACT, K, B = 3, 2, 4, 32
 cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
@@ -98,6 +98,22 @@ def test_compile_failure_names_the_option_and_the_way_out(monkeypatch):
     update(batch)  # the eager warm-up call
     with pytest.raises(RuntimeError, match=r"(?s)compile='reduce-overhead'.*unsupported op.*compile=False"):
         update(batch)
+
+
+def test_distribution_bounds_become_tensors_with_the_same_samples():
+    """What cudagraphs=True does to the actor (capture cannot copy host numbers): same draws, to the bit."""
+    loss = make_loss()
+    actor = loss.sac_loss.actor_network
+    td = make_batches(1)[0].select("observation", "skill")
+    torch.manual_seed(3)
+    before = actor(td.clone())
+    _distribution_kwargs_to(actor, torch.device("cpu"))
+    kwargs = [m.distribution_kwargs for m in actor.modules() if getattr(m, "distribution_kwargs", None)]
+    assert kwargs and all(isinstance(k["low"], torch.Tensor) and isinstance(k["high"], torch.Tensor) for k in kwargs)
+    torch.manual_seed(3)
+    after = actor(td.clone())
+    assert torch.equal(before["action"], after["action"])
+    assert torch.equal(before["action_log_prob"], after["action_log_prob"])
 
 
 @cuda

@@ -203,6 +203,19 @@ def make_diayn_optimizers(
     return optimizers
 
 
+def _distribution_kwargs_to(module: torch.nn.Module, device: torch.device) -> None:
+    """Put the float and tensor values of every submodule's ``distribution_kwargs`` (TanhNormal's ``low``/``high``)
+    on ``device`` as tensors, in place. The distribution turns host numbers into device tensors at every call, a
+    host-to-device copy that CUDA graph capture refuses; values, dtypes (the default float) and results are unchanged.
+    """
+    for sub in module.modules():
+        kwargs = getattr(sub, "distribution_kwargs", None)
+        if kwargs:
+            sub.distribution_kwargs = {
+                key: torch.as_tensor(value, device=device) if isinstance(value, (float, torch.Tensor)) else value
+                for key, value in kwargs.items()}
+
+
 class DIAYNUpdate:
     """One DIAYN gradient update: loss -> backward -> every optimiser's step -> soft update of the target Q-nets.
 
@@ -222,7 +235,8 @@ class DIAYNUpdate:
             mode rule (``"default"`` with CUDA graphs, else ``"reduce-overhead"``); a string is the mode. Compiled
             updates draw SAC's action noise from inductor's RNG, so they do not reproduce eager numbers bit for bit.
         cudagraphs (bool): capture the update in a CUDA graph (CUDA only; the optimisers must be ``capturable``).
-            Every batch must then have the same shape and device.
+            Every batch must then have the same shape and device. The loss's distribution bounds (the actor's
+            ``distribution_kwargs``) are moved to the device as tensors, since capture cannot copy host numbers.
 
     ``update(batch)`` takes a replay sample (the keys :class:`DIAYNLoss` reads, batch [B]) and returns the loss's
     output TensorDict, detached (``loss_*``, ``alpha``, ``entropy``, ``discriminator_accuracy``, ``pseudo_reward``).
@@ -269,6 +283,7 @@ class DIAYNUpdate:
                     f"cudagraphs=True needs capturable optimisers; {eager} are not: build them with "
                     "make_diayn_optimizers(..., capturable=True)."
                 )
+            _distribution_kwargs_to(loss.sac_loss.actor_network, device)  # held outside the module tree
         self.loss = loss
         self.optimizers = dict(optimizers)
         self.target_updater = SoftUpdate(loss.sac_loss, tau=tau)
