@@ -39,8 +39,11 @@ def tensors(obj, name="obj"):
     elif isinstance(obj, torch.nn.Module):
         yield from ((f"{name}.{k}", v) for k, v in obj.state_dict(keep_vars=True).items())
     elif isinstance(obj, torch.optim.Optimizer):
+        # torch keeps the step count of a non-capturable, non-fused Adam on the host by design (no sync per step)
+        host_step = not any(group.get("capturable") or group.get("fused") for group in obj.param_groups)
         for i, state in enumerate(obj.state.values()):
-            yield from tensors(dict(state), f"{name}.state[{i}]")
+            state = {k: v for k, v in state.items() if not (host_step and k == "step" and v.ndim == 0)}
+            yield from tensors(state, f"{name}.state[{i}]")
     elif hasattr(obj, "storage") and hasattr(obj, "sample"):  # a TorchRL replay buffer
         yield from tensors(obj[:], f"{name}.storage")
     elif isinstance(obj, dict):
