@@ -12,9 +12,9 @@ from umrl.configs.common import (
     RunConfig,
     TRPOConfig,
 )
-from umrl.configs.validate import boolean, choice, group, integer, number, string
+from umrl.configs.validate import boolean, checked, choice, group, integer, number, string
 from umrl.proposals import PROPOSALS
-from umrl.validation import InvalidValue, check_path_exists
+from umrl.validation import InvalidValue, check_bool, check_path_exists
 
 COMPILE_UNSUPPORTED = (
     "torch.compile cannot differentiate a compiled graph twice, and MAML's meta-gradient and KL Hessian-vector "
@@ -58,6 +58,13 @@ class MetaTRPOConfig(TRPOConfig):
     hvp_fraction: float = number(gt=0, le=1)
 
 
+def _compile_off(name: str, value) -> bool:
+    """``compile`` must be false (a field check, so a suite's ``pretrain.maml.overrides`` is refused at start too)."""
+    if check_bool(name, value):
+        raise InvalidValue(name, True, "false (set compile=false)", COMPILE_UNSUPPORTED)
+    return False
+
+
 @dataclass
 class MAMLConfig(RunConfig):
     """Every key of ``recipes/config/maml.yaml`` (:class:`RunConfig`'s and these); the yaml's comments say what each does."""
@@ -74,14 +81,12 @@ class MAMLConfig(RunConfig):
     advantage: AdvantageConfig = group(AdvantageConfig)
     trpo: MetaTRPOConfig = group(MetaTRPOConfig)
     checkpoint: CheckpointConfig = group(CheckpointConfig)
-    compile: bool = boolean()
+    compile: bool = checked(_compile_off)
 
     @staticmethod
     def cross_check(cfg: dict) -> list[str]:
-        """``proposal=diayn`` needs an existing ``diayn_checkpoint``; ``compile`` must be false."""
+        """``proposal=diayn`` needs an existing ``diayn_checkpoint``."""
         errors = []
-        if cfg["compile"]:
-            errors.append(InvalidValue("compile", True, "false (set compile=false)", COMPILE_UNSUPPORTED).message())
         if cfg["proposal"] == "diayn":
             try:
                 check_path_exists("diayn_checkpoint", cfg["diayn_checkpoint"])

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from umrl.configs.common import LoggerConfig
-from umrl.configs.diayn import DIAYNConfig
+from umrl.configs.diayn import DIAYNConfig, cudagraphs_errors
 from umrl.configs.maml import MAMLConfig
 from umrl.configs.validate import (
     boolean,
@@ -174,8 +174,8 @@ class SuiteConfig:
 
     @staticmethod
     def cross_check(cfg: dict) -> list[str]:
-        """Report steps within K, ablation methods among ``methods``, overrides against the recipes' schemas and
-        every ``reuse`` run the suite would use present."""
+        """Report steps within K, ablation methods among ``methods``, overrides against the recipes' schemas (DIAYN's
+        CUDA graphs against the suite's device) and every ``reuse`` run the suite would use present."""
         errors = []
         pseeds = cfg["pretrain_seeds"]
         if isinstance(pseeds, list) and len(pseeds) != len(cfg["seeds"]):
@@ -193,6 +193,10 @@ class SuiteConfig:
                                            note=f"{missing} would be skipped").message())
         for recipe, schema in RECIPE_SCHEMAS.items():
             errors += check_partial(cfg["pretrain"][recipe]["overrides"], schema, f"pretrain.{recipe}.overrides.")
+        diayn = cfg["pretrain"]["diayn"]["overrides"]
+        if "device" not in diayn:  # the DIAYN runs take the suite's device
+            errors += cudagraphs_errors(bool((diayn.get("optim") or {}).get("cudagraphs")), cfg["device"],
+                                        "pretrain.diayn.overrides.optim.cudagraphs")
         return errors + _reuse_errors(cfg)
 
 
