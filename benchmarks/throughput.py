@@ -21,12 +21,14 @@ Rows, per env and batch size ``B`` (policy = the 2x300 Gaussian MLP of :mod:`umr
   ``mujoco.rollout`` and the batched env on one thread each (per-core efficiency, free of thread scaling).
 
 ``--scaling`` prints a thread-scaling table instead, for half_cheetah and ant at ``B = --scaling-batch`` (800): at
-1, 2, 4, 8, 16 threads (up to the usable CPUs, or the ``--threads`` list) the physics limit (``mujoco.rollout`` open
+1, 2, 4, 8, 16 threads (up to the usable CPUs, or the ``--threads-list``) the physics limit (``mujoco.rollout`` open
 loop on that many threads), the batched backend alone (random actions) and with the 2x300 policy (``env.rollout``:
 torch on one thread beside the physics, as umrl collects, see :mod:`umrl.envs.threads`; and, last column, torch on
 the same number of threads as the physics), and their ratios to the limit; then the time to collect one paper-settings
 half_cheetah meta-iteration (20 tasks x 40 trajectories x 100 steps, pre- and post-update: 160 k env steps) through
-:func:`umrl.rollout.collect` with per-task parameters, on all the threads.
+:func:`umrl.rollout.collect` with per-task parameters, on all the threads. The table of the repeats done so far is
+printed after each repeat, so a run cut short by a time limit still reports (on 16 cores, 3 repeats of
+``--mujoco-steps 100`` took 232 s without the 1-thread rows and over 330 s with them).
 """
 
 from __future__ import annotations
@@ -283,8 +285,10 @@ def build_benchmarks(args) -> list[Bench]:
     return benches
 
 
-def run_benchmarks(benches: list[Bench], repeats: int) -> dict[int, list[float]]:
-    """Median-ready steps/s: ``{bench index: [steps/s per repeat]}``, configurations interleaved."""
+def run_benchmarks(benches: list[Bench], repeats: int,
+                   after_repeat: Callable[[dict[int, list[float]]], None] | None = None) -> dict[int, list[float]]:
+    """Median-ready steps/s: ``{bench index: [steps/s per repeat]}``, configurations interleaved; ``after_repeat``
+    is called with the rates so far after every repeat."""
     runs = {}
     for i, (*_, setup) in enumerate(benches):
         runs[i] = setup()
@@ -296,6 +300,8 @@ def run_benchmarks(benches: list[Bench], repeats: int) -> dict[int, list[float]]
             start = time.perf_counter()
             n = run()
             rates[i].append(n / (time.perf_counter() - start))
+        if after_repeat is not None:
+            after_repeat(rates)
     return rates
 
 
@@ -335,7 +341,8 @@ def _batched(name: str, batch: int, steps: int, threads: int, policy_threads: st
 
 
 def scaling_table(args, repeats: int) -> str:
-    """Thread-scaling rows per (env, threads): physics limit, batched alone, batched + policy, ratios."""
+    """Thread-scaling rows per (env, threads): physics limit, batched alone, batched + policy, ratios. The table of
+    the repeats done so far is printed after each one, so a run stopped by a time limit still reports."""
     batch = args.scaling_batch
     threads = args.threads_list or [t for t in (1, 2, 4, 8, 16, 32, 64) if t <= NUM_CPUS]
     benches: list[Bench] = []
@@ -348,22 +355,31 @@ def scaling_table(args, repeats: int) -> str:
                 (name, t, "policy", False, _batched(name, batch, steps, t, "umrl")),
                 (name, t, "policy, torch all", False, _batched(name, batch, steps, t, "all")),
             ]
-    rates = run_benchmarks(benches, repeats)
-    med = {(e, t, label): statistics.median(rates[i]) for i, (e, t, label, *_) in enumerate(benches)}
-    lines = [
-        f"thread scaling, B={batch}, env steps/s (medians of {repeats} interleaved repeats)",
-        f"{'env':<13}{'threads':>8}{'mujoco.rollout limit':>22}{'batched alone':>15}{'batched + policy':>18}"
-        + f"{'alone/limit':>13}{'policy/limit':>14}{'torch all thr/limit':>21}",
-    ]
-    for name, t in dict.fromkeys((e, t) for e, t, *_ in benches):
-        limit, alone, policy, policy_all = (
-            med[(name, t, k)] for k in ("limit", "alone", "policy", "policy, torch all")
-        )
-        lines.append(
-            f"{name:<13}{t:>8}{limit:>22,.0f}{alone:>15,.0f}{policy:>18,.0f}{alone / limit:>13.2f}"
-            f"{policy / limit:>14.2f}{policy_all / limit:>21.2f}"
-        )
-    return "\n".join(lines)
+
+    def table(rates: dict[int, list[float]]) -> str:
+        done = len(rates[0])
+        med = {(e, t, label): statistics.median(rates[i]) for i, (e, t, label, *_) in enumerate(benches)}
+        lines = [
+            f"thread scaling, B={batch}, env steps/s (medians of {done} interleaved repeats"
+            + ("" if done == repeats else f", {repeats - done} to go") + ")",
+            f"{'env':<13}{'threads':>8}{'mujoco.rollout limit':>22}{'batched alone':>15}{'batched + policy':>18}"
+            + f"{'alone/limit':>13}{'policy/limit':>14}{'torch all thr/limit':>21}",
+        ]
+        for name, t in dict.fromkeys((e, t) for e, t, *_ in benches):
+            limit, alone, policy, policy_all = (
+                med[(name, t, k)] for k in ("limit", "alone", "policy", "policy, torch all")
+            )
+            lines.append(
+                f"{name:<13}{t:>8}{limit:>22,.0f}{alone:>15,.0f}{policy:>18,.0f}{alone / limit:>13.2f}"
+                f"{policy / limit:>14.2f}{policy_all / limit:>21.2f}"
+            )
+        return "\n".join(lines)
+
+    def report(rates: dict[int, list[float]]) -> None:
+        if len(rates[0]) < repeats:
+            print(table(rates), flush=True)
+
+    return table(run_benchmarks(benches, repeats, after_repeat=report))
 
 
 def meta_iteration_collection(threads: int, repeats: int, num_tasks: int = 20, per_task: int = 40,

@@ -140,3 +140,22 @@ def test_episode_stats_end_error_of_a_velocity_task_uses_the_mean_velocity():
     stats = bench.episode_stats(batch, "half_cheetah")
     assert stats["jumped"] != stats["jumped"]  # NaN: not the Ant CMP
     assert stats["end error"] == pytest.approx((abs(2.0 - 1.5) + abs(1.0 - 1.5)) / 2)
+
+
+def test_throughput_scaling_prints_the_table_after_every_repeat(capsys):
+    """A scaling run stopped by a time limit still reports: the table of the repeats done so far follows each one."""
+    from argparse import Namespace
+
+    from script_loading import load_script
+
+    throughput = load_script("benchmarks/throughput.py")
+    args = Namespace(scaling_batch=4, threads_list=[1], mujoco_steps=8, quick=False)
+    with torch.no_grad():
+        final = throughput.scaling_table(args, repeats=2)
+    printed = capsys.readouterr().out
+    assert "medians of 1 interleaved repeats, 1 to go" in printed and "medians of 2" not in printed
+    assert final.splitlines()[0].endswith("(medians of 2 interleaved repeats)")
+    for table in (printed, final):
+        rows = [line.split() for line in table.splitlines() if line.startswith(("half_cheetah", "ant"))]
+        assert [(row[0], row[1]) for row in rows] == [("half_cheetah", "1"), ("ant", "1")]
+        assert all(float(x.replace(",", "")) > 0 for row in rows for x in row[2:])
