@@ -27,7 +27,6 @@ from tensordict import TensorDict
 from torch.utils.flop_counter import FlopCounterMode
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
-from umrl.absent_modules import mark_absent_modules
 from umrl.envs import ENV_NAMES, get_env_spec
 from umrl.heap import keep_freed_memory
 from umrl.modules.discriminator import make_discriminator
@@ -122,7 +121,6 @@ def main() -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     keep_freed_memory()  # as the recipes run
-    mark_absent_modules()
     names = ["eager"] + (["compile"] if args.compile else []) + (["cudagraphs"] if args.cudagraphs else [])
     names += ["compile+cudagraphs"] if args.compile and args.cudagraphs else []
     peak = matmul_rate(device, 4096, 4096, 4096) if device.type == "cuda" else matmul_rate(device, 1024, 1024, 1024)

@@ -36,7 +36,6 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from recipes import compose
 from recipes.maml import build, meta_iteration
-from umrl.absent_modules import mark_absent_modules
 from umrl.configs import validate
 from umrl.configs.maml import MAMLConfig
 from umrl.heap import keep_freed_memory
@@ -100,7 +99,6 @@ def main() -> None:
     overrides += [f"meta_batch_size={args.tasks}"] * (args.tasks is not None)
     overrides += [f"trajectories_per_task={args.trajectories}"] * (args.trajectories is not None)
     torch.set_num_threads(args.threads)
-    mark_absent_modules()
     heap = "kept" if args.heap == "keep" and keep_freed_memory() else "glibc default"
 
     variants = {name: Variant([*overrides, f"maml.task_loop={TASK_LOOP[name]}"]) for name in args.task_loop}

@@ -52,7 +52,6 @@ from torchrl.collectors import Collector
 from torchrl.envs import StepCounter, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from umrl.absent_modules import mark_absent_modules
 from umrl.envs import ENV_NAMES, make_env
 from umrl.envs.mujoco_batched import BATCHED_ENVS, MODEL_SPECS
 from umrl.envs.threads import torch_threads_beside_physics
@@ -424,7 +423,6 @@ def main() -> None:
     )
     args = parser.parse_args()
     keep_freed_memory()  # as the recipes run
-    mark_absent_modules()
     if args.scaling:
         repeats = 2 if args.quick else args.repeats
         print(f"umrl thread scaling: {NUM_CPUS} CPUs usable")

@@ -17,7 +17,6 @@ import time
 
 import torch
 
-from umrl.absent_modules import mark_absent_modules
 from umrl.envs import ENV_NAMES, make_env
 from umrl.heap import keep_freed_memory
 from umrl.modules.bnn import BayesianDynamics
@@ -63,7 +62,6 @@ def main() -> None:
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     keep_freed_memory()  # as the recipes run
-    mark_absent_modules()
     result = run(args.env, args.num_envs, args.horizon, args.repeats, args.num_samples)
     print(f"{args.env}: {result['transitions']} transitions, threads={torch.get_num_threads()}, "
           f"median of {args.repeats}: collect {result['collect_s']:.3f} s, bonus {result['bonus_s']:.3f} s, "

@@ -36,7 +36,6 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import RewardSum
 
-from umrl.absent_modules import mark_absent_modules
 from umrl.checkpoints import DIAYN_FORMAT, save_diayn_checkpoint
 from umrl.configs import RESUME_ALLOW, check_resume, validate
 from umrl.configs.diayn import DIAYNConfig
@@ -111,7 +110,6 @@ def train(cfg: DictConfig) -> dict:
     num_skills = resolve_num_skills(cfg)
     torch.set_num_threads(cfg.num_threads)
     keep_freed_memory()
-    mark_absent_modules()
     seed_everything(cfg.seed)
     device = torch.device(resolve_device("device", cfg.device))  # networks, loss, replay storage and envs
     out_dir = Path(cfg.output_dir)

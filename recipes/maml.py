@@ -35,7 +35,6 @@ import torch
 import tqdm
 from omegaconf import DictConfig
 
-from umrl.absent_modules import mark_absent_modules
 from umrl.checkpoints import MAML_FORMAT, save_maml_checkpoint
 from umrl.configs import check_resume, validate
 from umrl.configs.maml import MAMLConfig
@@ -161,7 +160,6 @@ def train(cfg: DictConfig) -> dict:
     cfg = validate(cfg, MAMLConfig)
     torch.set_num_threads(cfg.num_threads)
     keep_freed_memory()
-    mark_absent_modules()
     generator = seed_everything(cfg.seed)
     out_dir = Path(cfg.output_dir)
     checkpointer = Checkpointer(out_dir / "checkpoints", keep_all=cfg.checkpoint.keep_all)

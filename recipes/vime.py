@@ -39,7 +39,6 @@ from omegaconf import DictConfig
 from tensordict import TensorDictBase
 from torchrl.data import LazyTensorStorage, ReplayBuffer, TensorDictReplayBuffer
 
-from umrl.absent_modules import mark_absent_modules
 from umrl.checkpoints import VIME_FORMAT, save_vime_checkpoint
 from umrl.configs import check_resume, validate
 from umrl.configs.vime import VIMEConfig
@@ -113,7 +112,6 @@ def train(cfg: DictConfig) -> dict:
     cfg = validate(cfg, VIMEConfig)
     torch.set_num_threads(cfg.num_threads)
     keep_freed_memory()
-    mark_absent_modules()
     seed_everything(cfg.seed)
     device = torch.device(resolve_device("device", cfg.device))  # networks, replay storage, env outputs
     out_dir = Path(cfg.output_dir)

@@ -1,6 +1,7 @@
 """umrl.absent_modules.mark_absent_modules: absent packages answer at once, installed ones are left alone."""
 import importlib.machinery
 import importlib.util
+import subprocess
 import sys
 
 import pytest
@@ -41,3 +42,11 @@ def test_tensordict_module_outputs_no_longer_search_the_path(monkeypatch):
     for _ in range(5):
         TensorDict.from_any(torch.zeros(3))
     assert searches == []
+
+
+def test_importing_umrl_marks_absent_packages():
+    """Every process that uses umrl gets the marker (recipes, suite workers, benchmarks, user scripts)."""
+    probe = ("import importlib.util, sys; installed = importlib.util.find_spec('pandas') is not None; import umrl; "
+             "print(installed or sys.modules.get('pandas', 'unmarked') is None)")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "True"

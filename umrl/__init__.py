@@ -4,4 +4,10 @@ Subpackages, lowest layer first (each imports only from the ones before it): :mo
 their registry, task families), :mod:`umrl.transforms`, :mod:`umrl.modules`, :mod:`umrl.objectives` and
 :mod:`umrl.optim`, :mod:`umrl.rollout`, :mod:`umrl.checkpoints`, :mod:`umrl.metatest`; the training recipes are the
 ``recipes`` package.
+
+Importing umrl records absent optional packages that a dependency looks up on every module call
+(:mod:`umrl.absent_modules`).
 """
+from umrl.absent_modules import mark_absent_modules
+
+mark_absent_modules()

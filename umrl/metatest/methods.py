@@ -18,7 +18,6 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from umrl.absent_modules import mark_absent_modules
 from umrl.envs import get_env_spec
 from umrl.envs.tasks import get_task_family
 from umrl.heap import keep_freed_memory
@@ -296,7 +295,6 @@ def run_cell(spec: CellSpec) -> str:
     device = torch.device(resolve_device("device", spec.device))
     torch.set_num_threads(spec.threads)
     keep_freed_memory()
-    mark_absent_modules()
     start = time.perf_counter()
     config = spec.protocol
     init = load_initialisation(spec.method, spec.env, spec.checkpoint, seed=spec.seed, device=device)
