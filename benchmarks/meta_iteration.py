@@ -5,6 +5,7 @@
     python benchmarks/meta_iteration.py --preset half_cheetah        # 20 x 40 x 100, 2x300
     python benchmarks/meta_iteration.py --preset reference --task-loop batched loop   # variants, interleaved
     python benchmarks/meta_iteration.py --device auto --threads 16 --hvp-fraction 0.1 --repeats 5
+    python benchmarks/meta_iteration.py --device cuda --collection eager cudagraphs   # collection replayed from a CUDA graph
 
 One meta-iteration is the MAML recipe's own (``recipes.maml.build`` and ``recipes.maml.meta_iteration`` on the
 composed ``recipes/config/maml.yaml`` with the preset's overrides, oracle tasks): pre-update collection with θ and
@@ -18,8 +19,10 @@ The **arithmetic floor** is the learning step's matmul FLOPs (``torch.utils.flop
 untimed warm-up step) divided by the device's matmul rate, measured in the same run (one large ``torch.mm`` at the
 configured thread count before every round of iterations, median); ``learn / floor`` is how far the step is from that
 bound. Each ``--task-loop`` variant (``batched``: one batched matmul per layer for all tasks; ``loop``: a Python loop
-over tasks; ``vmap``) gets its own policy from the same seed, so all variants do the same work; their iterations are
-interleaved and the medians of ``--repeats`` runs are printed with same-run ratios. ``--metrics`` prints every
+over tasks; ``vmap``) and ``--collection`` variant (``eager``: TorchRL's ``env.rollout``; ``cudagraphs``: the
+recipe's ``cudagraphs=true``, each rollout replayed from a CUDA graph, point_nav on CUDA only) gets its own policy from
+the same seed, so all variants do the same work; their iterations are interleaved and the medians of ``--repeats``
+runs are printed with same-run ratios. ``--metrics`` prints every
 iteration's TRPO numbers in full precision (same seed, same numbers: compare before/after a change). ``--heap
 release`` runs with glibc's default malloc instead of keeping freed memory (``umrl.heap``); the header line prints
 the process's peak resident memory for the comparison.
@@ -85,6 +88,7 @@ def main() -> None:
     parser.add_argument("--trajectories", type=int, help="override the preset's trajectories per task")
     parser.add_argument("--hvp-fraction", type=float, default=1.0)
     parser.add_argument("--task-loop", nargs="+", default=["batched"], choices=sorted(TASK_LOOP))
+    parser.add_argument("--collection", nargs="+", default=["eager"], choices=["eager", "cudagraphs"])
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--repeats", type=int, default=3)
@@ -101,7 +105,11 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     heap = "kept" if args.heap == "keep" and keep_freed_memory() else "glibc default"
 
-    variants = {name: Variant([*overrides, f"maml.task_loop={TASK_LOOP[name]}"]) for name in args.task_loop}
+    variants = {
+        loop if len(args.collection) == 1 else f"{loop}/{collection}":
+            Variant([*overrides, f"maml.task_loop={TASK_LOOP[loop]}", f"cudagraphs={collection == 'cudagraphs'}"])
+        for loop in args.task_loop for collection in args.collection
+    }
     cfg = next(iter(variants.values())).cfg
     device = torch.device(cfg.device)
     flops = {}
@@ -138,10 +146,10 @@ def main() -> None:
     for name, row in rows.items():
         collect_s, learn_s = statistics.median(row["collect_s"]), statistics.median(row["learn_s"])
         floor = flops[name] / rate
-        first = first or learn_s
+        first = first or (name, collect_s, learn_s)
         print(f"  {name:8s} collect {collect_s:7.2f} s  learn {learn_s:7.2f} s  learn/collect {learn_s / collect_s:5.2f}"
               f"  floor {floor:6.2f} s ({flops[name] / 1e9:,.0f} GFLOP)  learn/floor {learn_s / floor:5.2f}"
-              f"  learn vs {args.task_loop[0]} {learn_s / first:5.2f}x")
+              f"  vs {first[0]}: collect {collect_s / first[1]:5.2f}x, learn {learn_s / first[2]:5.2f}x")
         inner, objective, direction, search, trials = (statistics.median(row[k]) for k in (*phases, "backtracks"))
         print(f"  {'':8s} learn = inner {inner:.2f} s + objective {objective:.2f} s + direction {direction:.2f} s "
               f"({cfg.trpo.cg_iters} CG products, {cfg.trpo.hvp} HVP) + line search {search:.2f} s "

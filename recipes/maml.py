@@ -45,7 +45,7 @@ from umrl.objectives.policy_gradient import compute_advantages, episode_returns
 from umrl.optim.trpo import TRPOStep
 from umrl.profiling import device_clock
 from umrl.proposals import make_proposal
-from umrl.rollout import collect
+from umrl.rollout import check_cudagraphs, collect
 from umrl.runtime import (
     Checkpointer,
     check_finite,
@@ -73,14 +73,15 @@ def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPO
     device = next(policy.parameters()).device
     start = device_clock(device)
     proposal.resample(generator)
-    support = compute_advantages(collect(proposal.env, policy, num_tasks=num_tasks, horizon=horizon), **adv)
+    graphs = {"cudagraphs": cfg.cudagraphs}
+    support = compute_advantages(collect(proposal.env, policy, num_tasks=num_tasks, horizon=horizon, **graphs), **adv)
     check_finite({"reward": support["next", "reward"]}, "the pre-update rollouts")
     inner_start = device_clock(device)
     with torch.enable_grad(), learn_context():  # the graph (second order unless first_order) is reused below
         adapted = loss.adapt(support)
     check_finite(dict(adapted.items(True, True)), "the adapted parameters (inner step)")
     inner_s = device_clock(device) - inner_start
-    query = collect(proposal.env, policy, num_tasks=num_tasks, horizon=horizon, params=adapted.detach())
+    query = collect(proposal.env, policy, num_tasks=num_tasks, horizon=horizon, params=adapted.detach(), **graphs)
     query = compute_advantages(query, **adv)
     collected = device_clock(device)
     with learn_context():
@@ -142,6 +143,8 @@ def build(cfg: DictConfig):
         arena=cfg.env.arena,
     )
     env = proposal.env
+    if cfg.cudagraphs:
+        check_cudagraphs(env)
     obs_dim, act_dim = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
     policy = make_gaussian_policy(obs_dim, act_dim, hidden=list(cfg.policy.hidden), init_std=cfg.policy.init_std)
     policy = policy.to(device)  # initialised on the CPU: the same weights on every device

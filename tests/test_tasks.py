@@ -57,6 +57,15 @@ def test_set_tasks_changes_rewards_and_survives_partial_resets():
     torch.testing.assert_close(rollout["next", "reward"], -torch.ones(2, 4, 1))
 
 
+def test_set_tasks_writes_in_place_and_never_into_the_callers_tensor():
+    first, second = torch.tensor([[0.1, 0.2], [0.3, 0.4]]), torch.tensor([[-0.1, 0.0], [0.0, -0.1]])
+    env = make_task_env("point_nav", first)
+    held = env.transform[-1].tasks
+    env.transform[-1].set_tasks(second)
+    assert env.transform[-1].tasks is held  # same storage: a recorded CUDA graph reads the new tasks
+    assert torch.equal(held, second) and torch.equal(first, torch.tensor([[0.1, 0.2], [0.3, 0.4]]))
+
+
 def test_forward_relabels_a_stored_batch():
     env = make_task_env("point_nav", torch.tensor([[0.1, 0.1]]))
     rollout = env.rollout(3, lambda td: td.set("action", torch.ones(1, 2)), break_when_any_done=False)

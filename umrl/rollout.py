@@ -13,23 +13,33 @@ network call per env step**:
 what a ``[T, N, H]`` batch needs, and it adds no process or buffer machinery a ``Collector`` would bring (measured:
 the env step and the policy MLP dominate, see ``benchmarks/meta_iteration.py``).
 
+On a GPU a point_nav step is microseconds of device work wrapped in milliseconds of host work (TorchRL's per-step
+bookkeeping, two host reads per step for its auto-reset). ``collect(..., cudagraphs=True)`` therefore records the
+whole ``horizon``-step loop once in a CUDA graph (tensordict's :class:`~tensordict.nn.CudaGraphModule`) and replays
+it: no auto-reset (a copy keeps stepping after its first ``done``; those steps are masked anyway, and the data up to
+each copy's first ``done`` are the same), the parameters and the reset state are the graph's inputs, and the env's
+state must change in place. The graph is recorded again whenever a tensor the env holds (parameter or buffer) is
+replaced rather than updated in place.
+
 :class:`FunctionalPolicy` is the one place that evaluates the policy with explicit parameters; ``MAMLLoss`` uses it
 too, so collection and the loss cannot disagree about what "adapted parameters" mean.
 """
 from __future__ import annotations
 
+import weakref
+
 import torch
-from tensordict import TensorDictBase
-from tensordict.nn import TensorDictSequential
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import CudaGraphModule, TensorDictSequential
 from torch.func import functional_call
-from torchrl.envs import EnvBase, ExplorationType, set_exploration_type
+from torchrl.envs import EnvBase, ExplorationType, TransformedEnv, set_exploration_type
 from torchrl.modules import ProbabilisticActor
 
 from umrl.envs.threads import torch_threads_beside_physics
 from umrl.modules.batched_mlp import BatchedGaussianMLP
 from umrl.trajectories import trajectory_mask
 
-__all__ = ["FunctionalPolicy", "collect"]
+__all__ = ["FunctionalPolicy", "check_cudagraphs", "collect", "fixed_horizon_steps"]
 
 
 class FunctionalPolicy:
@@ -107,6 +117,7 @@ def collect(
     num_tasks: int,
     horizon: int,
     params: TensorDictBase | None = None,
+    cudagraphs: bool = False,
 ) -> TensorDictBase:
     """Roll out ``horizon`` steps from a fresh reset in every env copy and return a ``[T, N, horizon]`` batch.
 
@@ -119,12 +130,16 @@ def collect(
         horizon: steps per copy ``H`` (the env's ``StepCounter`` should end episodes at the same horizon).
         params: ``None`` for the module's own parameters, a shared TensorDict (batch ``[]``) or per-task
             parameters with batch ``[T]`` (e.g. ``MAMLLoss.adapt(support)``); evaluated without gradients.
+        cudagraphs: replay the rollout from a CUDA graph (see the module docstring): CUDA envs whose step is pure
+            device work only (``graph_capturable = True`` on the base env: point_nav); the first two calls with a
+            given env, policy and shapes run eagerly and record the graph.
 
     Returns:
         TensorDict ``[T, N, H]`` with the env's keys (``"observation"``, ``"step_count"``, ``"task"``/``"skill"``
         if the env writes them, ``("next", "reward")``, ``("next", "done")``, ...), the policy's ``"loc"``,
         ``"scale"``, ``"action"``, ``"action_log_prob"``, and ``"mask"`` ``[T, N, H]`` (True up to and including
-        each copy's first ``done``; later steps come from auto-resets and must be ignored).
+        each copy's first ``done``; later steps come from auto-resets, or with ``cudagraphs`` from stepping on, and
+        must be ignored).
     """
     batch = env.batch_size.numel()
     if len(env.batch_size) != 1 or num_tasks < 1 or batch % num_tasks:
@@ -135,8 +150,10 @@ def collect(
     functional = FunctionalPolicy(policy)
     if params is not None and params.batch_dims == 1 and params.shape[0] != num_tasks:
         raise ValueError(f"got per-task params for {params.shape[0]} tasks but num_tasks={num_tasks}.")
+    if cudagraphs:
+        check_cudagraphs(env)
 
-    def act(td: TensorDictBase) -> TensorDictBase:
+    def act_with(params: TensorDictBase | None, td: TensorDictBase) -> TensorDictBase:
         if params is None:
             return policy(td)
         if params.batch_dims == 0:
@@ -144,8 +161,68 @@ def collect(
         return td.update(functional.act(params, td.view(num_tasks, per_task)).view(batch))
 
     with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM), torch_threads_beside_physics(env):
-        rollout = env.rollout(horizon, policy=act, auto_reset=True, break_when_any_done=False)
+        if cudagraphs:
+            params = (TensorDict.from_module(policy) if params is None else params).detach()
+            rollout = _replay(env, (id(policy), num_tasks, params.batch_dims, horizon), act_with, params, horizon)
+        else:
+            rollout = env.rollout(horizon, policy=lambda td: act_with(params, td), auto_reset=True,
+                                  break_when_any_done=False)
     rollout = rollout.view(num_tasks, per_task, horizon)
     rollout.set("mask", trajectory_mask(rollout["next", "done"]))
     return rollout
 
+
+def fixed_horizon_steps(env: EnvBase, act, td: TensorDictBase, horizon: int) -> TensorDictBase:
+    """``horizon`` steps of ``act`` then ``env.step`` from the root ``td``, stacked to ``[*env.batch_size, horizon]``.
+
+    ``env.rollout(horizon, act, tensordict=td, auto_reset=False, break_when_any_done=False)`` without its
+    auto-resets: no step reads the device on the host, so the loop can be recorded in a CUDA graph. A copy keeps
+    stepping after its first ``done``; up to there the data are ``env.rollout``'s (tested).
+    """
+    steps = []
+    for _ in range(horizon):
+        td = env.step(act(td))
+        steps.append(td)
+        td = env._step_mdp(td)  # what env.rollout moves "next" to the root with
+    return torch.stack(steps, env.batch_dims)
+
+
+#: Recorded rollouts: ``env -> {(policy id, T, params batch dims, horizon): (env state pointers, graph)}``.
+_GRAPHS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _env_chain(env: EnvBase) -> list[EnvBase]:
+    chain = [env]
+    while isinstance(chain[-1], TransformedEnv):
+        chain.append(chain[-1].base_env)
+    return chain
+
+
+def check_cudagraphs(env: EnvBase) -> None:
+    """Raise ``ValueError`` unless ``collect(env, ..., cudagraphs=True)`` can record ``env``'s rollout."""
+    base = _env_chain(env)[-1]
+    if not getattr(base, "graph_capturable", False):
+        raise ValueError(
+            f"cudagraphs=True needs an env whose step is pure device work; {type(base).__name__} is not "
+            "(MuJoCo steps on CPU threads): pass cudagraphs=False."
+        )
+    if env.device is None or env.device.type != "cuda":
+        raise ValueError(f"cudagraphs=True needs the env on a CUDA device, it is on {env.device}: pass cudagraphs=False.")
+
+
+def _state_pointers(env: EnvBase) -> tuple[int, ...]:
+    """Addresses of every parameter and buffer of ``env``, its transforms and its base env (what a graph reads)."""
+    return tuple(t.data_ptr() for e in _env_chain(env) for t in (*e.parameters(), *e.buffers()))
+
+
+def _replay(env: EnvBase, key: tuple, act_with, params: TensorDictBase, horizon: int) -> TensorDictBase:
+    graphs = _GRAPHS.setdefault(env, {})
+    pointers = _state_pointers(env)
+    if key not in graphs or graphs[key][0] != pointers:
+
+        def run(inputs: TensorDictBase) -> TensorDictBase:
+            return fixed_horizon_steps(env, lambda td: act_with(inputs["params"], td), inputs["state"], horizon)
+
+        graphs[key] = (pointers, CudaGraphModule(run, in_keys=[], device=env.device))
+    inputs = TensorDict(state=env.reset(), params=params, device=env.device)
+    return graphs[key][1](inputs)

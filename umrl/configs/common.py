@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from umrl.configs.validate import boolean, choice, device, group, int_list, integer, number, string
 from umrl.envs import BACKENDS, ENV_NAMES
 from umrl.runtime import LOGGER_BACKENDS
+from umrl.validation import InvalidValue
 
 LOGGER_MODES = ("offline", "online", "disabled")
 
@@ -85,3 +86,12 @@ class TRPOConfig:
     cg_iters: int = integer(min=1)
     backtrack_ratio: float = number(gt=0, lt=1)
     max_backtracks: int = integer(min=0)
+
+
+def cudagraphs_errors(cudagraphs: bool, device: str, key: str) -> list[str]:
+    """The error of a CUDA-graph switch ``key`` set true on a device other than CUDA (``device`` resolved:
+    ``cpu``/``cuda``)."""
+    if cudagraphs and device != "cuda":
+        return [InvalidValue(key, True, f"false with device={device} (CUDA graphs need device=cuda, or auto on a "
+                             "machine with a GPU)").message()]
+    return []

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from umrl.configs.common import BatchedEnvConfig, CheckpointConfig, RunConfig
+from umrl.configs.common import BatchedEnvConfig, CheckpointConfig, RunConfig, cudagraphs_errors
 from umrl.configs.validate import boolean, group, int_list, integer, number
 from umrl.envs import get_env_spec
 from umrl.validation import InvalidValue
@@ -49,14 +49,6 @@ class EvalConfig:
     episodes_per_skill: int = integer(min=1)
 
 
-def cudagraphs_errors(cudagraphs: bool, device: str, key: str = "optim.cudagraphs") -> list[str]:
-    """The error of ``optim.cudagraphs=true`` on a device other than CUDA (``device`` resolved: ``cpu``/``cuda``)."""
-    if cudagraphs and device != "cuda":
-        return [InvalidValue(key, True, f"false with device={device} (CUDA graphs need device=cuda, or auto on a "
-                             "machine with a GPU)").message()]
-    return []
-
-
 @dataclass
 class DIAYNConfig(RunConfig):
     """Every key of ``recipes/config/diayn.yaml`` (:class:`RunConfig`'s and these); the yaml's comments say what each does."""
@@ -74,7 +66,7 @@ class DIAYNConfig(RunConfig):
     def cross_check(cfg: dict) -> list[str]:
         """The collector's batch holds whole env steps; the replay batch fits in the buffer; the discriminator's input
         dims exist in the env's observation; CUDA graphs run on a CUDA device (``device`` is resolved here)."""
-        errors = cudagraphs_errors(cfg["optim"]["cudagraphs"], cfg["device"])
+        errors = cudagraphs_errors(cfg["optim"]["cudagraphs"], cfg["device"], "optim.cudagraphs")
         dims, obs_dim = cfg["network"]["discriminator_input_dims"], get_env_spec(cfg["env"]["name"]).obs_dim
         if dims is not None and max(dims) >= obs_dim:
             errors.append(InvalidValue("network.discriminator_input_dims", dims,

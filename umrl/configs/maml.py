@@ -11,6 +11,7 @@ from umrl.configs.common import (
     PolicyConfig,
     RunConfig,
     TRPOConfig,
+    cudagraphs_errors,
 )
 from umrl.configs.validate import boolean, checked, choice, group, integer, number, string
 from umrl.proposals import PROPOSALS
@@ -82,11 +83,14 @@ class MAMLConfig(RunConfig):
     trpo: MetaTRPOConfig = group(MetaTRPOConfig)
     checkpoint: CheckpointConfig = group(CheckpointConfig)
     compile: bool = checked(_compile_off)
+    cudagraphs: bool = boolean()
 
     @staticmethod
     def cross_check(cfg: dict) -> list[str]:
-        """``proposal=diayn`` needs an existing ``diayn_checkpoint``."""
-        errors = []
+        """``proposal=diayn`` needs an existing ``diayn_checkpoint``; CUDA graphs run on a CUDA device (``device`` is
+        resolved here; which envs they can record is checked when the env exists, see
+        :func:`umrl.rollout.check_cudagraphs`)."""
+        errors = cudagraphs_errors(cfg["cudagraphs"], cfg["device"], "cudagraphs")
         if cfg["proposal"] == "diayn":
             try:
                 check_path_exists("diayn_checkpoint", cfg["diayn_checkpoint"])

@@ -8,8 +8,8 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-from umrl.configs.common import LoggerConfig
-from umrl.configs.diayn import DIAYNConfig, cudagraphs_errors
+from umrl.configs.common import LoggerConfig, cudagraphs_errors
+from umrl.configs.diayn import DIAYNConfig
 from umrl.configs.maml import MAMLConfig
 from umrl.configs.validate import (
     boolean,
@@ -193,10 +193,12 @@ class SuiteConfig:
                                            note=f"{missing} would be skipped").message())
         for recipe, schema in RECIPE_SCHEMAS.items():
             errors += check_partial(cfg["pretrain"][recipe]["overrides"], schema, f"pretrain.{recipe}.overrides.")
-        diayn = cfg["pretrain"]["diayn"]["overrides"]
-        if "device" not in diayn:  # the DIAYN runs take the suite's device
+        diayn, maml = cfg["pretrain"]["diayn"]["overrides"], cfg["pretrain"]["maml"]["overrides"]
+        if "device" not in diayn:  # the pre-training runs take the suite's device
             errors += cudagraphs_errors(bool((diayn.get("optim") or {}).get("cudagraphs")), cfg["device"],
                                         "pretrain.diayn.overrides.optim.cudagraphs")
+        if "device" not in maml:
+            errors += cudagraphs_errors(bool(maml.get("cudagraphs")), cfg["device"], "pretrain.maml.overrides.cudagraphs")
         return errors + _reuse_errors(cfg)
 
 

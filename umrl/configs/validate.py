@@ -200,6 +200,7 @@ RESUME_ALLOW = (
     "device",
     "optim.compile",
     "optim.cudagraphs",
+    "cudagraphs",
     "iterations",
     "collector.total_frames",
     "checkpoint.every",

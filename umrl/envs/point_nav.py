@@ -36,6 +36,7 @@ class PointNavEnv(EnvBase):
     """
 
     batch_locked = True
+    graph_capturable = True  # the step is pure device work on in-place state (see umrl.rollout.collect)
 
     def __init__(self, num_envs: int, *, device: torch.device | str = "cpu", arena: float | None = None):
         if num_envs < 1:
@@ -55,7 +56,8 @@ class PointNavEnv(EnvBase):
              for key in ("done", "terminated", "truncated")},
             shape=shape,
         )
-        self._position = torch.zeros(shape + (2,), device=device)
+        # Buffers updated in place, so a CUDA graph of the step (``collect(..., cudagraphs=True)``) reads the live state.
+        self.register_buffer("_position", torch.zeros(shape + (2,), device=device), persistent=False)
         self._not_done = torch.zeros(shape + (1,), dtype=torch.bool, device=device)
 
     def _state(self, **extra) -> TensorDict:
@@ -76,9 +78,9 @@ class PointNavEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action")
-        self._position = self._position + ACTION_SCALE * action.clamp(-1.0, 1.0)
+        self._position.add_(ACTION_SCALE * action.clamp(-1.0, 1.0))
         if self.arena is not None:
-            self._position = self._position.clamp(-self.arena, self.arena)
+            self._position.clamp_(-self.arena, self.arena)
         return self._state(reward=torch.zeros(self.batch_size + (1,), device=self.device))
 
     def _set_seed(self, seed: int | None) -> None:

@@ -39,7 +39,11 @@ class TaskReward(Transform):
     def set_tasks(self, tasks: torch.Tensor) -> None:
         """Give env copy ``i`` the task ``tasks[i]``; ``tasks`` has shape ``[B, task_dim]``."""
         batch = self.parent.batch_size.numel() if self.parent is not None else None
-        self.tasks = self.family.check_tasks(tasks, batch).to(self.tasks.device)
+        tasks = self.family.check_tasks(tasks, batch).to(self.tasks.device)
+        if tasks.shape == self.tasks.shape:
+            self.tasks.copy_(tasks)  # in place: a CUDA graph of the step keeps reading the live tasks
+        else:
+            self.tasks = tasks.clone()  # never the caller's tensor: later calls write into this one
 
     def _tasks_for(self, tensordict: TensorDictBase) -> torch.Tensor:
         if self.tasks.shape[0] == 0:
