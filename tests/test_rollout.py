@@ -121,6 +121,23 @@ def test_cudagraphs_refused_off_cuda_and_for_host_physics():
         collect(cheetah, make_gaussian_policy(17, 6, hidden=(8,)), num_tasks=2, horizon=3, cudagraphs=True)
 
 
+@pytest.mark.skipif(torch.cuda.is_available(), reason="on a GPU the test below records and replays for real")
+def test_graph_path_plumbing_on_the_cpu(monkeypatch):
+    """Off CUDA ``CudaGraphModule`` runs its function eagerly: the cudagraphs path's inputs, fixed-horizon loop and
+    cache give consistent batches for shared and per-task parameters (what the CUDA test checks after replays)."""
+    monkeypatch.setattr(rollout_module, "check_cudagraphs", lambda env: None)
+    env, policy, tasks = _setup()
+    theta = TensorDict.from_module(policy).detach()
+    adapted = theta.expand(T).clone().apply(lambda p: p + 0.1 * torch.randn_like(p))
+    for _ in range(3):
+        shared = collect(env, policy, num_tasks=T, horizon=H, cudagraphs=True)
+        per_task = collect(env, policy, num_tasks=T, horizon=H, params=adapted, cudagraphs=True)
+        _check_rollout_consistent(shared, policy, theta, tasks.repeat_interleave(N, 0))
+        _check_rollout_consistent(per_task, policy, adapted, tasks.repeat_interleave(N, 0))
+        assert shared.batch_size == per_task.batch_size == (T, N, H) and shared["mask"].all()
+    assert len(rollout_module._GRAPHS[env]) == 2
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_replayed_rollout_follows_live_params_env_state_and_tasks():
     """Recorded once, replayed after in-place updates of the policy and new tasks: every replay reads the live ones."""
