@@ -24,7 +24,11 @@ Rows, per env and batch size ``B`` (policy = the 2x300 Gaussian MLP of :mod:`umr
 1, 2, 4, 8, 16 threads (up to the usable CPUs, or the ``--threads-list``) the physics limit (``mujoco.rollout`` open
 loop on that many threads), the batched backend alone (random actions) and with the 2x300 policy (``env.rollout``:
 torch on one thread beside the physics, as umrl collects, see :mod:`umrl.envs.threads`; and, last column, torch on
-the same number of threads as the physics), and their ratios to the limit; then the time to collect one paper-settings
+the same number of threads as the physics), and their ratios to the limit; next to them the bounds the policy's own
+cost sets: the policy alone (sample for ``B`` observations, torch on one thread) takes ``t_p`` per step against the
+limit's ``t_L``, so collecting with policy and physics one after the other (as umrl does) reaches at most
+``t_L / (t_L + t_p)`` of the limit ("serial bound"), and with the policy's work perfectly overlapped with the physics
+on ``n`` threads at most ``t_L / (t_L + t_p / n)`` ("overlap bound"); then the time to collect one paper-settings
 half_cheetah meta-iteration (20 tasks x 40 trajectories x 100 steps, pre- and post-update: 160 k env steps) through
 :func:`umrl.rollout.collect` with per-task parameters, on all the threads. The table of the repeats done so far is
 printed after each repeat, so a run cut short by a time limit still reports (on 16 cores, 3 repeats of
@@ -340,6 +344,24 @@ def _batched(name: str, batch: int, steps: int, threads: int, policy_threads: st
     return setup
 
 
+def _policy_only(name: str, batch: int, steps: int):
+    """The 2x300 policy sampling actions for ``batch`` observations of ``name``, ``steps`` times, torch on one thread."""
+
+    def setup():
+        env = BATCHED_ENVS[name](batch, seed=0, num_threads=1)
+        policy, td = _policy(env), env.reset()
+
+        def run() -> int:
+            torch.set_num_threads(1)
+            for _ in range(steps):
+                policy(td)
+            return batch * steps
+
+        return run
+
+    return setup
+
+
 def scaling_table(args, repeats: int) -> str:
     """Thread-scaling rows per (env, threads): physics limit, batched alone, batched + policy, ratios. The table of
     the repeats done so far is printed after each one, so a run stopped by a time limit still reports."""
@@ -354,6 +376,7 @@ def scaling_table(args, repeats: int) -> str:
                 (name, t, "alone", False, _batched(name, batch, steps, t, None)),
                 (name, t, "policy", False, _batched(name, batch, steps, t, "umrl")),
                 (name, t, "policy, torch all", False, _batched(name, batch, steps, t, "all")),
+                (name, t, "policy only", False, _policy_only(name, batch, steps)),
             ]
 
     def table(rates: dict[int, list[float]]) -> str:
@@ -363,15 +386,18 @@ def scaling_table(args, repeats: int) -> str:
             f"thread scaling, B={batch}, env steps/s (medians of {done} interleaved repeats"
             + ("" if done == repeats else f", {repeats - done} to go") + ")",
             f"{'env':<13}{'threads':>8}{'mujoco.rollout limit':>22}{'batched alone':>15}{'batched + policy':>18}"
-            + f"{'alone/limit':>13}{'policy/limit':>14}{'torch all thr/limit':>21}",
+            + f"{'alone/limit':>13}{'policy/limit':>14}{'torch all thr/limit':>21}{'serial bound':>14}"
+            + f"{'overlap bound':>15}",
         ]
         for name, t in dict.fromkeys((e, t) for e, t, *_ in benches):
-            limit, alone, policy, policy_all = (
-                med[(name, t, k)] for k in ("limit", "alone", "policy", "policy, torch all")
+            limit, alone, policy, policy_all, policy_only = (
+                med[(name, t, k)] for k in ("limit", "alone", "policy", "policy, torch all", "policy only")
             )
+            t_limit, t_policy = 1 / limit, 1 / policy_only  # seconds per env step of each, same batch
             lines.append(
                 f"{name:<13}{t:>8}{limit:>22,.0f}{alone:>15,.0f}{policy:>18,.0f}{alone / limit:>13.2f}"
-                f"{policy / limit:>14.2f}{policy_all / limit:>21.2f}"
+                f"{policy / limit:>14.2f}{policy_all / limit:>21.2f}{t_limit / (t_limit + t_policy):>14.2f}"
+                f"{t_limit / (t_limit + t_policy / t):>15.2f}"
             )
         return "\n".join(lines)
 
