@@ -12,8 +12,8 @@ composed ``recipes/config/maml.yaml`` with the preset's overrides, oracle tasks)
 advantages, the inner adaptation (with the graph the meta-step reuses), post-update collection with every task's
 adapted parameters ("collect" = both collections and advantages), then the TRPO meta-step ("learn" = inner
 adaptation + TRPO step). A second line splits "learn" into the recipe's ``time/`` parts: the inner adaptation, the
-surrogate and KL through it, the search direction (gradient, Hessian-vector product set-up and the conjugate-gradient
-products) and the line search, with the median number of trials.
+surrogate and KL through it, the search direction (the gradient with the Hessian-vector product set-up, and the
+conjugate-gradient products) and the line search, with the median number of trials.
 
 The **arithmetic floor** is the learning step's matmul FLOPs (``torch.utils.flop_counter.FlopCounterMode`` over one
 untimed warm-up step) divided by the device's matmul rate, measured in the same run (one large ``torch.mm`` at the
@@ -119,7 +119,7 @@ def main() -> None:
         flops[name] = sum(c.get_total_flops() for c in counters)
         if args.metrics:
             print(f"  {name} warm-up: {json.dumps(info)}", flush=True)
-    phases = ("inner_s", "objective_s", "direction_s", "line_search_s")
+    phases = ("inner_s", "objective_s", "direction_s", "cg_s", "line_search_s")
     rows = {name: {k: [] for k in ("collect_s", "learn_s", *phases, "backtracks")} for name in variants}
     rates = []
     for _ in range(args.repeats):
@@ -150,9 +150,10 @@ def main() -> None:
         print(f"  {name:8s} collect {collect_s:7.2f} s  learn {learn_s:7.2f} s  learn/collect {learn_s / collect_s:5.2f}"
               f"  floor {floor:6.2f} s ({flops[name] / 1e9:,.0f} GFLOP)  learn/floor {learn_s / floor:5.2f}"
               f"  vs {first[0]}: collect {collect_s / first[1]:5.2f}x, learn {learn_s / first[2]:5.2f}x")
-        inner, objective, direction, search, trials = (statistics.median(row[k]) for k in (*phases, "backtracks"))
+        inner, objective, direction, cg, search, trials = (statistics.median(row[k]) for k in (*phases, "backtracks"))
         print(f"  {'':8s} learn = inner {inner:.2f} s + objective {objective:.2f} s + direction {direction:.2f} s "
-              f"({cfg.trpo.cg_iters} CG products, {cfg.trpo.hvp} HVP) + line search {search:.2f} s "
+              f"(gradient and HVP set-up {direction - cg:.2f} s, {cfg.trpo.cg_iters} CG products {cg:.2f} s, "
+              f"{cfg.trpo.hvp} HVP) + line search {search:.2f} s "
               f"({trials:.0f} trials)")
 
 

@@ -21,8 +21,8 @@ trajectories), reward_mean/std/min/max (task rewards of the pre-update batch), k
 improvement, backtracks, accepted, grad_norm, step_norm; ``time/`` collect_s (rollouts + advantages),
 learn_s (inner adaptation for the post-update policy + TRPO meta-step), inner_s (that adaptation alone, built
 with the graph the meta-step differentiates through), the meta-step's parts objective_s (surrogate and KL through
-the inner step), direction_s (gradient, HVP set-up, ``trpo.cg_iters`` products) and line_search_s,
-env_steps_per_s (pre + post env steps per second of collect_s), env_steps. Checkpoints: ``<output_dir>/checkpoints/step_<iteration>.pt`` (format in :mod:`umrl.checkpoints.maml`).
+the inner step), direction_s (gradient, HVP set-up, ``trpo.cg_iters`` products), cg_s (those products alone) and
+line_search_s, env_steps_per_s (pre + post env steps per second of collect_s), env_steps. Checkpoints: ``<output_dir>/checkpoints/step_<iteration>.pt`` (format in :mod:`umrl.checkpoints.maml`).
 """
 from __future__ import annotations
 
@@ -91,7 +91,7 @@ def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPO
     reward = support["next", "reward"][support["mask"]]
     steps = 2 * support["mask"].numel()
     collect_s, learn_s = collected - start - inner_s, learned - collected + inner_s
-    phases = {"direction_s": info.pop("direction_s"), "line_search_s": info.pop("line_search_s")}
+    phases = {k: info.pop(k) for k in ("direction_s", "cg_s", "line_search_s")}
     metrics = {f"train/{k}": v for k, v in info.items()}
     metrics.update({
         "train/return_pre": episode_returns(support).mean().item(),

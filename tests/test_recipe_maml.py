@@ -24,6 +24,7 @@ def test_two_iterations_per_proposal(tmp_path, proposal, tiny_diayn_checkpoint):
     for key in ("train/return_pre", "train/return_post", "train/kl", "train/improvement", "time/collect_s",
                 "time/learn_s", "time/env_steps_per_s", "train/reward_mean"):
         assert torch.isfinite(torch.tensor(result[key])), key
+    assert 0 < result["time/cg_s"] < result["time/direction_s"] < result["time/learn_s"]  # the step's parts nest
     assert result["train/kl"] <= 0.01
     files = Checkpointer(out / "checkpoints").all()
     assert [p.name for p in files] == ["step_0.pt", "step_1.pt", "step_2.pt"]

@@ -1,5 +1,5 @@
-"""Timing on any device, for the benchmarks: a clock that waits for queued device work, and the matmul rate that
-turns a FLOP count into an arithmetic floor."""
+"""Timing on any device (the recipes' ``time/`` metrics, TRPO's phases, the benchmarks): a clock that waits for
+queued device work, and the matmul rate that turns a FLOP count into an arithmetic floor."""
 from __future__ import annotations
 
 import time

@@ -34,6 +34,7 @@ from collections.abc import Callable
 import torch
 from tensordict import TensorDictBase
 
+from umrl.profiling import device_clock
 from umrl.validation import check_float, check_int, check_positive
 
 __all__ = ["TRPOStep", "conjugate_gradient"]
@@ -100,9 +101,10 @@ class TRPOStep:
     Calling the step returns a dict of floats: ``surrogate_before``, ``surrogate_after``, ``improvement``
     (before − after, positive is better), ``kl`` (measured at the accepted point, 0 if rejected), ``accepted``
     (1.0/0.0), ``backtracks`` (trials evaluated), ``step_norm``, ``grad_norm``, and wall-clock seconds
-    ``direction_s`` (gradient, Hessian-vector product set-up and ``cg_iters`` conjugate-gradient products) and
-    ``line_search_s`` (the trials). Both end at a ``.item()`` the step makes anyway, so on CUDA they include the
-    queued work without an extra synchronisation.
+    ``direction_s`` (gradient, Hessian-vector product set-up and ``cg_iters`` conjugate-gradient products), of it
+    ``cg_s`` (the conjugate-gradient products alone), and ``line_search_s`` (the trials). They end at a ``.item()``
+    the step makes anyway, so on CUDA they include the queued work; ``cg_s`` starts after one synchronisation (a
+    dozen host reads happen in the step already).
     """
 
     def __init__(
@@ -195,6 +197,7 @@ class TRPOStep:
                     return undamped(v) + self.damping * v
             else:
                 damped = self.hvp_builder(kl if hvp_closure is None else hvp_closure())
+            cg_start = device_clock(grad.device)
             direction, h_direction = conjugate_gradient(damped, grad, iters=self.cg_iters, with_product=True)
             shs = direction.dot(h_direction).item()
         del damped, kl, loss
@@ -209,6 +212,7 @@ class TRPOStep:
             "backtracks": 0.0,
             "step_norm": 0.0,
             "direction_s": line_search_start - direction_start,
+            "cg_s": line_search_start - cg_start,
             "line_search_s": 0.0,
         }
         if not math.isfinite(shs) or shs <= 0:
