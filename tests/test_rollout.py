@@ -158,5 +158,8 @@ def test_replayed_rollout_follows_live_params_env_state_and_tasks():
         per_task = collect(env, policy, num_tasks=T, horizon=H, params=adapted, cudagraphs=True)
         _check_rollout_consistent(shared, policy, theta, tasks)
         _check_rollout_consistent(per_task, policy, adapted, tasks)
-        graphs.append([graph.counter for _, graph in rollout_module._GRAPHS[env].values()])
-    assert len(graphs[-1]) == 2 and min(graphs[-1]) > 2  # both rollouts were replayed from their graphs, not re-recorded
+        graphs.append({key: graph for key, (_, graph) in rollout_module._GRAPHS[env].items()})
+    # CudaGraphModule warms up on the first call and captures on the second (its counter then stays at 2): the same two
+    # modules served every call and hold a captured graph, so calls 3-5 replayed it rather than re-recording.
+    assert len(graphs[-1]) == 2 and all(g == graphs[0] for g in graphs)
+    assert all(isinstance(graph.graph, torch.cuda.CUDAGraph) for graph in graphs[-1].values())
