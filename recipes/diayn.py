@@ -129,6 +129,10 @@ def train(cfg: DictConfig) -> dict:
     allow = [key for key in RESUME_ALLOW if key != "checkpoint.every"]
     state = (DIAYN_FORMAT.load_for_resume(checkpointer, meta, lambda saved: check_resume(saved, cfg, allow))
              if cfg.resume else None)
+    if state is not None and "replay" not in state:
+        raise ValueError(f"resume=true: {checkpointer.latest()} holds a run's skills only (written by "
+                         "umrl.checkpoints.export_diayn_skills, without loss, optimisers and replay buffer); resume "
+                         "the run it was exported from, or train afresh with resume=false.")
     # initialised on the CPU (the same weights on every device), then moved before the loss copies their parameters
     actor = make_skill_actor(obs_dim, num_skills, act_dim, hidden=hidden).to(device)
     discriminator = make_discriminator(obs_dim, num_skills, hidden=disc_hidden,

@@ -80,6 +80,27 @@ def test_resume_without_checkpoint_fails_clearly(tmp_path):
         load_recipe().train(tiny_config(tmp_path, "resume=true"))
 
 
+def test_exported_skills_load_like_the_run_and_refuse_resume(tmp_path):
+    """python -m umrl.checkpoints.export_skills: the copy holds the run's actor and discriminator (equal tensors) and
+    its config, without replay buffer or optimisers; the loaders read it, a resume from it is refused by name."""
+    run, skills = tmp_path / "run", tmp_path / "skills"
+    load_recipe().train(tiny_config(run))
+    proc = subprocess.run([sys.executable, "-m", "umrl.checkpoints.export_skills", str(run), str(skills)],
+                          check=True, capture_output=True, text=True, timeout=120, cwd=REPO)
+    written = skills / "checkpoints" / "step_120.pt"
+    assert proc.stdout.strip() == str(written)
+    source, copy = load_diayn_checkpoint(run), load_diayn_checkpoint(skills)
+    assert set(copy) == {"format", "meta", "config", "actor", "discriminator", "counters"}
+    assert "replay" in source and written.stat().st_size < (run / "checkpoints" / "step_120.pt").stat().st_size / 2
+    assert (copy["meta"], copy["config"], copy["counters"]) == (source["meta"], source["config"], source["counters"])
+    assert (skills / "checkpoints" / "config.yaml").read_text() == (run / "checkpoints" / "config.yaml").read_text()
+    for load in (load_discriminator, load_skill_policy):
+        for a, b in zip(load(run)[0].parameters(), load(skills)[0].parameters(), strict=True):
+            torch.testing.assert_close(a, b, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="resume=true: .*step_120.pt holds a run's skills only"):
+        load_recipe().train(tiny_config(skills, "resume=true", "collector.total_frames=200"))
+
+
 def test_cli_rejects_one_skill(tmp_path):
     proc = subprocess.run(
         [sys.executable, str(REPO / "recipes" / "diayn.py"), "num_skills=1", "logger.backend=none",

@@ -10,9 +10,12 @@ VIME    recipes/vime.py     :func:`load_vime_checkpoint`, :func:`load_vime_polic
 
 Every loader accepts a ``step_*.pt`` file, a ``checkpoints/`` folder or a run's output_dir (the latest checkpoint),
 and raises ``ValueError`` for a file of another format (:class:`~umrl.checkpoints.format.CheckpointFormat`).
+:func:`export_diayn_skills` (``python -m umrl.checkpoints.export_skills SOURCE DESTINATION``) keeps a finished DIAYN
+run's skills without its replay buffer; the same loaders read the copy.
 """
 from umrl.checkpoints.diayn import (
     DIAYN_FORMAT,
+    export_diayn_skills,
     load_diayn_checkpoint,
     load_discriminator,
     load_skill_policy,
@@ -33,6 +36,7 @@ __all__ = [
     "MAML_FORMAT",
     "VIME_FORMAT",
     "CheckpointFormat",
+    "export_diayn_skills",
     "load_diayn_checkpoint",
     "load_discriminator",
     "load_maml_checkpoint",
