@@ -162,3 +162,42 @@ def test_throughput_scaling_prints_the_table_after_every_repeat(capsys):
         for row in rows:  # the policy's cost bounds the ratio: serial <= overlapped <= 1 (here on 1 thread: equal)
             serial, overlap = float(row[-2]), float(row[-1])
             assert serial <= overlap <= 1 and serial == overlap
+
+
+def test_action_noise_adapts_like_the_suite_and_replaces_only_the_log_std(tmp_path, capsys):
+    """Its ``saved`` arm is the suite's MAML cell (same returns as meta_test of load_initialisation); a replaced
+    log-std changes the sampled noise and nothing else; the table has one row per run and log-std."""
+    import numpy as np
+    from script_loading import load_script
+    from tensordict import TensorDict
+
+    from recipes import compose
+    from recipes.maml import train
+    from umrl.checkpoints import load_maml_policy
+    from umrl.envs.tasks import get_task_family
+    from umrl.metatest import AdaptationConfig, load_initialisation, meta_test
+
+    train(compose("maml", ["proposal=oracle", "iterations=1", "meta_batch_size=2", "trajectories_per_task=2",
+                           "env.horizon=10", "policy.hidden=[16]", "logger.backend=none", "progress=false",
+                           f"output_dir={tmp_path}"]))
+    bench = load_script("benchmarks/action_noise.py")
+    config = AdaptationConfig(num_steps=2, num_trajectories=3, horizon=10, sgd_schedule="reference")
+    tasks = get_task_family("point_nav").eval_tasks(2)
+    saved, returns = bench.adapt(str(tmp_path), None, env="point_nav", tasks=tasks, seed=1, config=config)
+    init = load_initialisation("oracle", "point_nav", tmp_path, seed=1)
+    expected, _ = meta_test(init, "point_nav", tasks, lr=init.lr, seed=1, config=config, skill_trajectories=1)
+    np.testing.assert_array_equal(returns, expected.numpy())
+    assert saved == bench.log_std_parameter(load_maml_policy(tmp_path)[0]).mean().item()
+
+    policy = load_maml_policy(tmp_path)[0]
+    bench.log_std_parameter(policy).data.fill_(-3.0)
+    out = policy(TensorDict({"observation": torch.zeros(4, 2)}, [4]))
+    torch.testing.assert_close(out["scale"], torch.full((4, 2), float(np.exp(-3.0))))
+    _, replaced = bench.adapt(str(tmp_path), -3.0, env="point_nav", tasks=tasks, seed=1, config=config)
+    assert not np.array_equal(replaced, returns)
+
+    bench.main(["--run", f"tiny={tmp_path}", "--log-std", "saved", "-3", "--seeds", "1", "--steps", "2",
+                "--num-tasks", "2", "--trajectories", "3"])
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].split()[:6] == ["run", "log-std", "saved", "k=0", "k=1", "k=2"]
+    assert [line.split()[:2] for line in lines[1:]] == [["tiny", "saved"], ["tiny", "-3.00"]]
