@@ -36,7 +36,7 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import RewardSum
 
-from umrl.checkpoints import DIAYN_FORMAT, save_diayn_checkpoint
+from umrl.checkpoints.diayn import DIAYN_FORMAT, check_resumable, save_diayn_checkpoint
 from umrl.configs import RESUME_ALLOW, check_resume, validate
 from umrl.configs.diayn import DIAYNConfig
 from umrl.envs import get_env_spec, make_env
@@ -129,10 +129,8 @@ def train(cfg: DictConfig) -> dict:
     allow = [key for key in RESUME_ALLOW if key != "checkpoint.every"]
     state = (DIAYN_FORMAT.load_for_resume(checkpointer, meta, lambda saved: check_resume(saved, cfg, allow))
              if cfg.resume else None)
-    if state is not None and "replay" not in state:
-        raise ValueError(f"resume=true: {checkpointer.latest()} holds a run's skills only (written by "
-                         "umrl.checkpoints.export_diayn_skills, without loss, optimisers and replay buffer); resume "
-                         "the run it was exported from, or train afresh with resume=false.")
+    if state is not None:
+        check_resumable(state, checkpointer.latest())
     # initialised on the CPU (the same weights on every device), then moved before the loss copies their parameters
     actor = make_skill_actor(obs_dim, num_skills, act_dim, hidden=hidden).to(device)
     discriminator = make_discriminator(obs_dim, num_skills, hidden=disc_hidden,

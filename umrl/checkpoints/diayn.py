@@ -51,8 +51,8 @@ DIAYN_FORMAT = CheckpointFormat(
 SKILL_ENTRIES = ("actor", "discriminator", "counters")
 """What :func:`export_diayn_skills` keeps besides ``format``, ``meta`` and ``config``."""
 
-__all__ = ["DIAYN_FORMAT", "SKILL_ENTRIES", "export_diayn_skills", "load_diayn_checkpoint", "load_discriminator", "load_skill_policy",
-           "save_diayn_checkpoint"]
+__all__ = ["DIAYN_FORMAT", "SKILL_ENTRIES", "check_resumable", "export_diayn_skills", "load_diayn_checkpoint",
+           "load_discriminator", "load_skill_policy", "save_diayn_checkpoint"]
 
 
 def save_diayn_checkpoint(
@@ -96,6 +96,15 @@ def export_diayn_skills(source: str | os.PathLike, destination: str | os.PathLik
     state = load_diayn_checkpoint(source)
     return DIAYN_FORMAT.save(Checkpointer(Path(destination) / "checkpoints"), state["counters"]["frames"],
                              state["meta"], state["config"], **{key: state[key] for key in SKILL_ENTRIES})
+
+
+def check_resumable(state: Mapping[str, Any], source: str | os.PathLike | None) -> None:
+    """Raise ``ValueError`` naming ``source`` if ``state`` is a skills-only copy (:func:`export_diayn_skills`): it has
+    no loss, optimisers or replay buffer to resume from."""
+    if "replay" not in state:
+        raise ValueError(f"resume=true: {source} holds a run's skills only (written by "
+                         "umrl.checkpoints.export_diayn_skills, without loss, optimisers and replay buffer); resume "
+                         "the run it was exported from, or train afresh with resume=false.")
 
 
 def load_discriminator(path: str | os.PathLike) -> tuple[TensorDictModule, int, int]:
