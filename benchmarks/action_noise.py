@@ -21,7 +21,6 @@ import argparse
 
 import numpy as np
 import torch
-from tensordict.nn import AddStateIndependentNormalScale
 
 from umrl.checkpoints import load_maml_policy
 from umrl.envs.tasks import get_task_family
@@ -29,19 +28,14 @@ from umrl.heap import keep_freed_memory
 from umrl.metatest import AdaptationConfig, Initialisation, meta_test
 from umrl.metatest.protocol import SGD_SCHEDULES
 from umrl.metatest.stats import auc, bootstrap_ci, iqm
-
-
-def log_std_parameter(policy: torch.nn.Module) -> torch.nn.Parameter:
-    """The policy's learned, state-independent log-std ``[act_dim]`` (:func:`umrl.modules.make_gaussian_policy`)."""
-    (scale,) = [m for m in policy.modules() if isinstance(m, AddStateIndependentNormalScale)]
-    return scale.state_independent_scale
+from umrl.modules import policy_log_std
 
 
 def adapt(path: str, log_std: float | None, *, env: str, tasks: torch.Tensor, seed: int,
           config: AdaptationConfig) -> tuple[float, np.ndarray]:
     """(saved log-std mean, returns ``[K + 1, T]``) of the MAML init at ``path``, its log-std set to ``log_std``."""
     policy, inner_lr = load_maml_policy(path)
-    parameter = log_std_parameter(policy)
+    parameter = policy_log_std(policy)
     saved = parameter.mean().item()
     if log_std is not None:
         with torch.no_grad():

@@ -60,18 +60,17 @@ from umrl.runtime import (
 from umrl.validation import resolve_device
 
 
-def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPOStep, generator: torch.Generator,
-                   *, learn_context: Callable[[], contextlib.AbstractContextManager] = contextlib.nullcontext) -> dict[str, float]:
-    """Collect support and query batches for a fresh meta-batch and take one TRPO meta-step; return metrics.
+def meta_batch(cfg: DictConfig, proposal, policy, loss: MAMLLoss, generator: torch.Generator,
+               *, learn_context: Callable[[], contextlib.AbstractContextManager] = contextlib.nullcontext):
+    """A fresh meta-batch: ``(support, adapted, query, inner_s)``.
 
-    ``learn_context`` makes the context manager that wraps each part of the learning step alone: it is called twice
-    per iteration, for the inner adaptation and for the TRPO step (the query collection runs between them), e.g.
-    fresh FLOP counters (``benchmarks/meta_iteration.py``; one ``FlopCounterMode`` entered twice would forget the
-    first part). Times are taken after the device's queued work (CUDA) has finished."""
+    ``proposal.resample`` draws the tasks, ``support`` holds the pre-update trajectories with θ and their advantages,
+    ``adapted`` every task's parameters after the inner step (built with the graph the meta-step differentiates
+    through, under ``learn_context()``), ``query`` the post-update trajectories with them and their advantages;
+    ``inner_s`` is the inner step's time."""
     num_tasks, horizon = proposal.num_tasks, cfg.env.horizon
     adv = {"gamma": cfg.advantage.gamma, "lmbda": cfg.advantage.lmbda, "normalize": cfg.advantage.normalize}
     device = next(policy.parameters()).device
-    start = device_clock(device)
     proposal.resample(generator)
     graphs = {"cudagraphs": cfg.cudagraphs}
     support = compute_advantages(collect(proposal.env, policy, num_tasks=num_tasks, horizon=horizon, **graphs), **adv)
@@ -82,10 +81,24 @@ def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPO
     check_finite(dict(adapted.items(True, True)), "the adapted parameters (inner step)")
     inner_s = device_clock(device) - inner_start
     query = collect(proposal.env, policy, num_tasks=num_tasks, horizon=horizon, params=adapted.detach(), **graphs)
-    query = compute_advantages(query, **adv)
+    return support, adapted, compute_advantages(query, **adv), inner_s
+
+
+def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPOStep, generator: torch.Generator,
+                   *, learn_context: Callable[[], contextlib.AbstractContextManager] = contextlib.nullcontext) -> dict[str, float]:
+    """Collect support and query batches for a fresh meta-batch (:func:`meta_batch`) and take one TRPO meta-step
+    (:func:`meta_step`); return metrics.
+
+    ``learn_context`` makes the context manager that wraps each part of the learning step alone: it is called twice
+    per iteration, for the inner adaptation and for the TRPO step (the query collection runs between them), e.g.
+    fresh FLOP counters (``benchmarks/meta_iteration.py``; one ``FlopCounterMode`` entered twice would forget the
+    first part). Times are taken after the device's queued work (CUDA) has finished."""
+    device = next(policy.parameters()).device
+    start = device_clock(device)
+    support, adapted, query, inner_s = meta_batch(cfg, proposal, policy, loss, generator, learn_context=learn_context)
     collected = device_clock(device)
     with learn_context():
-        info = _meta_step(cfg, loss, trpo, support, query, adapted, generator)
+        info = meta_step(cfg, loss, trpo, support, query, adapted, generator)
     learned = device_clock(device)
 
     reward = support["next", "reward"][support["mask"]]
@@ -113,9 +126,11 @@ def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPO
     return metrics
 
 
-def _meta_step(cfg: DictConfig, loss: MAMLLoss, trpo: TRPOStep, support, query, adapted,
-               generator: torch.Generator) -> dict[str, float]:
-    """TRPO's meta-step through the inner step, with the KL Hessian-vector products ``cfg.trpo.hvp`` names."""
+def meta_step(cfg: DictConfig, loss: MAMLLoss, trpo: TRPOStep, support, query, adapted,
+              generator: torch.Generator) -> dict[str, float]:
+    """TRPO's meta-step through the inner step (``adapted``: :func:`meta_batch`'s, with its graph), with the KL
+    Hessian-vector products ``cfg.trpo.hvp`` names on ``cfg.trpo.hvp_fraction`` of the trajectories (drawn by
+    ``generator``); updates the policy in place and returns :class:`~umrl.optim.trpo.TRPOStep`'s numbers."""
     fraction = cfg.trpo.hvp_fraction
     with torch.enable_grad():  # the meta-step's first evaluation, through the inner step's graph
         initial = loss.objective_and_kl(support, query, phi=adapted)

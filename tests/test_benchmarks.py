@@ -176,6 +176,7 @@ def test_action_noise_adapts_like_the_suite_and_replaces_only_the_log_std(tmp_pa
     from umrl.checkpoints import load_maml_policy
     from umrl.envs.tasks import get_task_family
     from umrl.metatest import AdaptationConfig, load_initialisation, meta_test
+    from umrl.modules import policy_log_std
 
     train(compose("maml", ["proposal=oracle", "iterations=1", "meta_batch_size=2", "trajectories_per_task=2",
                            "env.horizon=10", "policy.hidden=[16]", "logger.backend=none", "progress=false",
@@ -187,10 +188,10 @@ def test_action_noise_adapts_like_the_suite_and_replaces_only_the_log_std(tmp_pa
     init = load_initialisation("oracle", "point_nav", tmp_path, seed=1)
     expected, _ = meta_test(init, "point_nav", tasks, lr=init.lr, seed=1, config=config, skill_trajectories=1)
     np.testing.assert_array_equal(returns, expected.numpy())
-    assert saved == bench.log_std_parameter(load_maml_policy(tmp_path)[0]).mean().item()
+    assert saved == policy_log_std(load_maml_policy(tmp_path)[0]).mean().item()
 
     policy = load_maml_policy(tmp_path)[0]
-    bench.log_std_parameter(policy).data.fill_(-3.0)
+    policy_log_std(policy).data.fill_(-3.0)
     out = policy(TensorDict({"observation": torch.zeros(4, 2)}, [4]))
     torch.testing.assert_close(out["scale"], torch.full((4, 2), float(np.exp(-3.0))))
     _, replaced = bench.adapt(str(tmp_path), -3.0, env="point_nav", tasks=tasks, seed=1, config=config)
@@ -201,3 +202,39 @@ def test_action_noise_adapts_like_the_suite_and_replaces_only_the_log_std(tmp_pa
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].split()[:6] == ["run", "log-std", "saved", "k=0", "k=1", "k=2"]
     assert [line.split()[:2] for line in lines[1:]] == [["tiny", "saved"], ["tiny", "-3.00"]]
+
+
+def test_kl_hessian_fraction_steps_from_one_batch_and_undoes_each_step(tmp_path, capsys):
+    """Two steps at the same fraction from the same batch are identical (each step undone, the batch reused), the
+    log-std's KL is the Gaussian KL, ``:init`` starts from the recipe's init (log σ = log init_std = 0), and a
+    fraction outside (0, 1] is refused."""
+    from script_loading import load_script
+
+    from recipes import compose
+    from recipes.maml import train
+
+    train(compose("maml", ["proposal=oracle", "iterations=1", "meta_batch_size=3", "trajectories_per_task=4",
+                           "env.horizon=10", "policy.hidden=[16]", "logger.backend=none", "progress=false",
+                           f"output_dir={tmp_path}"]))
+    bench = load_script("benchmarks/kl_hessian_fraction.py")
+    rows = bench.compare_steps(str(tmp_path), from_init=False, seed=0, fractions=[1.0, 1.0, 0.5], draws=2,
+                               threads=1, skills=None)
+    assert [(r["fraction"], r["draw"]) for r in rows] == [(1.0, 0), (1.0, 0), (0.5, 0), (0.5, 1)]
+    assert rows[0]["accepted"] == 1 and rows[0]["dlogstd"] != 0
+    for key in ("dlogstd", "kl", "improvement", "mean_net_norm", "log_std"):
+        assert rows[1][key] == rows[0][key]
+    assert rows[1]["cosine"] == pytest.approx(1.0)
+    assert rows[2]["log_std"] == rows[0]["log_std"] != 0.0
+    assert rows[2]["dlogstd"] != rows[3]["dlogstd"]  # two subsamples, two Hessians
+
+    delta = torch.tensor([0.3, -0.2])
+    normal = torch.distributions.Normal
+    expected = torch.distributions.kl_divergence(normal(0.0, torch.ones(2)), normal(0.0, delta.exp())).sum()
+    assert bench.sigma_kl(delta) == pytest.approx(expected.item(), rel=1e-6)
+
+    init = bench.compare_steps(str(tmp_path), from_init=True, seed=0, fractions=[1.0], draws=1, threads=1,
+                               skills=None)
+    assert init[0]["log_std"] == 0.0
+    with pytest.raises(SystemExit):
+        bench.main(["--run", f"tiny={tmp_path}", "--fractions", "1.5"])
+    assert "--fractions: got [1.5]; expected values in (0, 1]" in capsys.readouterr().err

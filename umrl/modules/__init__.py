@@ -3,7 +3,7 @@ dynamics model."""
 from umrl.modules.batched_mlp import BatchedGaussianMLP
 from umrl.modules.bnn import BayesianDynamics, BayesianLinear
 from umrl.modules.discriminator import make_discriminator
-from umrl.modules.policy import make_gaussian_policy
+from umrl.modules.policy import make_gaussian_policy, policy_log_std
 from umrl.modules.sac import make_skill_actor, make_skill_qvalue
 
 __all__ = [
@@ -14,4 +14,5 @@ __all__ = [
     "make_gaussian_policy",
     "make_skill_actor",
     "make_skill_qvalue",
+    "policy_log_std",
 ]

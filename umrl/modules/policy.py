@@ -55,6 +55,12 @@ def make_gaussian_policy(
     )
 
 
+def policy_log_std(policy: nn.Module) -> nn.Parameter:
+    """The learned, state-independent log-std ``[act_dim]`` of a :func:`make_gaussian_policy` policy."""
+    (scale,) = [m for m in policy.modules() if isinstance(m, AddStateIndependentNormalScale)]
+    return scale.state_independent_scale
+
+
 class _Concat(nn.Module):
     """Concatenates several inputs on the last dim before calling ``net``."""
 
