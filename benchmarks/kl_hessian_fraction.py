@@ -18,12 +18,14 @@ Printed per step: accepted, line-search trials, the measured KL and surrogate im
 log-std ``Δ log σ`` (the policy's state-independent log-std, mean over action dimensions); ``KL(σ)``, the KL between
 the policy before and after the step from the log-std change alone (``Σ_d Δ_d + (exp(-2 Δ_d) - 1) / 2``, the means
 held fixed), as a share of ``trpo.max_kl``; the step's norm on the mean network; and its cosine with the first
-fraction's step. A summary gives the medians over seeds and draws. The question it answers: does a step whose KL
-Hessian sees the whole batch spend its trust region differently, e.g. shrink σ faster, than one that sees 10 %?
+fraction's step (``nan`` where either step was rejected). A summary gives the medians over seeds and draws (the
+cosine's over the steps that have one). The question it answers: does a step whose KL Hessian sees the whole batch
+spend its trust region differently, e.g. shrink σ faster, than one that sees 10 %?
 """
 from __future__ import annotations
 
 import argparse
+import math
 import statistics
 
 import torch
@@ -92,7 +94,8 @@ def compare_steps(path: str, *, from_init: bool, seed: int, fractions: list[floa
                 "log_std": start[is_log_std.index(True)].mean().item(), "dlogstd": delta.mean().item(),
                 "kl_sigma": sigma_kl(delta) / cfg.trpo.max_kl,
                 "mean_net_norm": torch.cat([d.reshape(-1) for d, s in zip(diffs, is_log_std) if not s]).norm().item(),
-                "cosine": torch.nn.functional.cosine_similarity(step, reference, dim=0).item() if step.any() else 0.0,
+                "cosine": torch.nn.functional.cosine_similarity(step, reference, dim=0).item()
+                if step.any() and reference.any() else math.nan,  # a rejected step has no direction
             })
     proposal.env.close()
     return rows
@@ -136,10 +139,12 @@ def main(argv: list[str] | None = None) -> None:
     print(f"\nmedians over seeds {args.seeds} and draws:")
     print("run | fraction | steps accepted | Δ log σ | KL(σ) / max_kl | ‖Δ mean net‖ | cos vs first")
     for (label, fraction), rows in summary.items():
-        med = {k: statistics.median(r[k] for r in rows) for k in ("dlogstd", "kl_sigma", "mean_net_norm", "cosine")}
+        med = {k: statistics.median(r[k] for r in rows) for k in ("dlogstd", "kl_sigma", "mean_net_norm")}
+        cosines = [r["cosine"] for r in rows if not math.isnan(r["cosine"])]
+        cosine = f"{statistics.median(cosines):.3f}" if cosines else "–"
         accepted = sum(r["accepted"] for r in rows)
         print(f"{label} | {fraction:g} | {accepted:.0f} / {len(rows)} | {med['dlogstd']:+.5f} | "
-              f"{med['kl_sigma']:.3f} | {med['mean_net_norm']:.4f} | {med['cosine']:.3f}")
+              f"{med['kl_sigma']:.3f} | {med['mean_net_norm']:.4f} | {cosine}")
 
 
 if __name__ == "__main__":

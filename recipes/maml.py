@@ -18,7 +18,8 @@ taken through the inner step (optionally on ``trpo.hvp_fraction`` of the traject
 
 Logged per iteration: ``train/`` return_pre, return_post (mean undiscounted return of the pre/post-update
 trajectories), reward_mean/std/min/max (task rewards of the pre-update batch), kl, surrogate_before,
-improvement, backtracks, accepted, grad_norm, step_norm; ``time/`` collect_s (rollouts + advantages),
+improvement, backtracks, accepted, grad_norm, step_norm, log_std (θ's action log-std after the meta-step, mean over
+action dimensions); ``time/`` collect_s (rollouts + advantages),
 learn_s (inner adaptation for the post-update policy + TRPO meta-step), inner_s (that adaptation alone, built
 with the graph the meta-step differentiates through), the meta-step's parts objective_s (surrogate and KL through
 the inner step), direction_s (gradient, HVP set-up, ``trpo.cg_iters`` products), cg_s (those products alone) and
@@ -39,7 +40,7 @@ from umrl.checkpoints import MAML_FORMAT, save_maml_checkpoint
 from umrl.configs import check_resume, validate
 from umrl.configs.maml import MAMLConfig
 from umrl.heap import keep_freed_memory
-from umrl.modules.policy import make_gaussian_policy
+from umrl.modules.policy import make_gaussian_policy, policy_log_std
 from umrl.objectives.maml import MAMLLoss
 from umrl.objectives.policy_gradient import compute_advantages, episode_returns
 from umrl.optim.trpo import TRPOStep
@@ -113,6 +114,7 @@ def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPO
         "train/reward_std": reward.std().item(),
         "train/reward_min": reward.min().item(),
         "train/reward_max": reward.max().item(),
+        "train/log_std": policy_log_std(policy).mean().item(),
         "time/collect_s": collect_s,
         "time/learn_s": learn_s,
         "time/inner_s": inner_s,

@@ -5,6 +5,7 @@ import torch
 from recipes import compose
 from recipes.maml import train
 from umrl.checkpoints import load_maml_checkpoint, load_maml_policy
+from umrl.modules import policy_log_std
 from umrl.runtime import Checkpointer
 
 TINY = ["env.horizon=10", "meta_batch_size=2", "trajectories_per_task=3", "policy.hidden=[16]",
@@ -34,6 +35,7 @@ def test_two_iterations_per_proposal(tmp_path, proposal, tiny_diayn_checkpoint):
     assert state["meta"]["proposal"] == proposal and state["iteration"] == 2
     policy, inner_lr = load_maml_policy(out)
     assert inner_lr == 0.1 and policy.module[0].module[0][0].out_features == 16
+    assert result["train/log_std"] == policy_log_std(policy).mean().item()  # logged after the meta-step
 
 
 def test_resume_continues_from_the_latest_checkpoint(tmp_path):
