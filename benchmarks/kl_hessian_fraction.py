@@ -14,13 +14,14 @@ exports), then take the TRPO meta-step from the same parameters on that same bat
 (``trpo.hvp_fraction``: the share of trajectories behind the KL Hessian; fractions below 1 with ``--draws``
 different subsamples). Each step is undone before the next, so the steps differ only in the Hessian.
 
-Printed per step: accepted, line-search trials, the measured KL and surrogate improvement; the change of the mean
-log-std ``Δ log σ`` (the policy's state-independent log-std, mean over action dimensions); ``KL(σ)``, the KL between
-the policy before and after the step from the log-std change alone (``Σ_d Δ_d + (exp(-2 Δ_d) - 1) / 2``, the means
-held fixed), as a share of ``trpo.max_kl``; the step's norm on the mean network; and its cosine with the first
-fraction's step (``nan`` where either step was rejected). A summary gives the medians over seeds and draws (the
-cosine's over the steps that have one). The question it answers: does a step whose KL Hessian sees the whole batch
-spend its trust region differently, e.g. shrink σ faster, than one that sees 10 %?
+Printed per step: accepted, line-search trials (of them: KL over ``max_kl`` / no improvement), the measured KL and
+surrogate improvement; the change of the mean log-std ``Δ log σ`` (the policy's state-independent log-std, mean over
+action dimensions); ``KL(σ)``, the KL between the policy before and after the step from the log-std change alone
+(``Σ_d Δ_d + (exp(-2 Δ_d) - 1) / 2``, the means held fixed), as a share of ``trpo.max_kl``; the step's norm on the
+mean network; and its cosine with the first fraction's step (``nan`` where either step was rejected). A summary
+gives the medians over seeds and draws (the cosine's over the steps that have one). The question it answers: does a
+step whose KL Hessian sees the whole batch spend its trust region differently, e.g. shrink σ faster, than one that
+sees 10 %?
 """
 from __future__ import annotations
 
@@ -90,7 +91,8 @@ def compare_steps(path: str, *, from_init: bool, seed: int, fractions: list[floa
             delta = diffs[is_log_std.index(True)]
             rows.append({
                 "seed": seed, "fraction": fraction, "draw": draw, "accepted": info["accepted"],
-                "backtracks": info["backtracks"], "kl": info["kl"], "improvement": info["improvement"],
+                "backtracks": info["backtracks"], "rejected_kl": info["rejected_kl"],
+                "rejected_surrogate": info["rejected_surrogate"], "kl": info["kl"], "improvement": info["improvement"],
                 "log_std": start[is_log_std.index(True)].mean().item(), "dlogstd": delta.mean().item(),
                 "kl_sigma": sigma_kl(delta) / cfg.trpo.max_kl,
                 "mean_net_norm": torch.cat([d.reshape(-1) for d, s in zip(diffs, is_log_std) if not s]).norm().item(),
@@ -123,7 +125,7 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--fractions: got {bad}; expected values in (0, 1]")
     keep_freed_memory()
     summary = {}
-    print("run | seed | fraction | draw | accepted | trials | KL | improvement | log σ before | Δ log σ | "
+    print("run | seed | fraction | draw | accepted | trials (KL over / no improvement) | KL | improvement | log σ before | Δ log σ | "
           "KL(σ) / max_kl | ‖Δ mean net‖ | cos vs first")
     for label, path, from_init in runs:
         for seed in args.seeds:
@@ -133,7 +135,7 @@ def main(argv: list[str] | None = None) -> None:
                                      skills=skills):
                 summary.setdefault((label, row["fraction"]), []).append(row)
                 print(f"{label} | {seed} | {row['fraction']:g} | {row['draw']} | {row['accepted']:.0f} | "
-                      f"{row['backtracks']:.0f} | {row['kl']:.5f} | {row['improvement']:.5f} | "
+                      f"{row['backtracks']:.0f} ({row['rejected_kl']:.0f} / {row['rejected_surrogate']:.0f}) | {row['kl']:.5f} | {row['improvement']:.5f} | "
                       f"{row['log_std']:.3f} | {row['dlogstd']:+.5f} | {row['kl_sigma']:.3f} | "
                       f"{row['mean_net_norm']:.4f} | {row['cosine']:.3f}", flush=True)
     print(f"\nmedians over seeds {args.seeds} and draws:")

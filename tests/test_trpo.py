@@ -48,7 +48,7 @@ def test_line_search_restores_parameters_bit_exactly_when_no_step_improves():
         return (c * delta).sum() + 1e6 * delta.pow(2).sum(), delta.pow(2).sum()
 
     info = TRPOStep(params, max_kl=0.01)(closure)
-    assert info["accepted"] == 0.0 and info["backtracks"] == 15
+    assert info["accepted"] == 0.0 and info["backtracks"] == 15 and info["rejected_surrogate"] == 15
     assert torch.equal(_flat(params), theta0)
     assert info["direction_s"] > info["cg_s"] > 0 and info["line_search_s"] > 0  # both phases ran and are timed
 
@@ -70,6 +70,7 @@ def test_line_search_accepts_improving_step_within_kl_bound():
 
     info = TRPOStep(params, max_kl=0.01, cg_iters=30)(closure, hvp_closure=model_kl)
     assert info["accepted"] == 1.0 and info["backtracks"] > 1
+    assert info["rejected_kl"] == info["backtracks"] - 1 and info["rejected_surrogate"] == 0  # too far, not worse
     assert 0 < info["kl"] <= 0.01 and info["improvement"] > 0
     step = theta0 - _flat(params)
     # natural-gradient direction: H^{-1} c with H = diag(curvature)

@@ -100,7 +100,8 @@ class TRPOStep:
 
     Calling the step returns a dict of floats: ``surrogate_before``, ``surrogate_after``, ``improvement``
     (before − after, positive is better), ``kl`` (measured at the accepted point, 0 if rejected), ``accepted``
-    (1.0/0.0), ``backtracks`` (trials evaluated), ``step_norm``, ``grad_norm``, and wall-clock seconds
+    (1.0/0.0), ``backtracks`` (trials evaluated), of them ``rejected_surrogate`` (no improvement) and ``rejected_kl``
+    (KL over ``max_kl``; a trial can fail both), ``step_norm``, ``grad_norm``, and wall-clock seconds
     ``direction_s`` (gradient, Hessian-vector product set-up and ``cg_iters`` conjugate-gradient products), of it
     ``cg_s`` (the conjugate-gradient products alone), and ``line_search_s`` (the trials). They end at a ``.item()``
     the step makes anyway, so on CUDA they include the queued work; ``cg_s`` starts after one synchronisation (a
@@ -210,6 +211,8 @@ class TRPOStep:
             "kl": 0.0,
             "accepted": 0.0,
             "backtracks": 0.0,
+            "rejected_surrogate": 0.0,
+            "rejected_kl": 0.0,
             "step_norm": 0.0,
             "direction_s": line_search_start - direction_start,
             "cg_s": line_search_start - cg_start,
@@ -225,7 +228,11 @@ class TRPOStep:
             with torch.no_grad():
                 new_loss, new_kl = (t.detach().item() for t in closure())
             info["backtracks"] = float(i + 1)
-            if math.isfinite(new_loss) and new_loss < loss_before and new_kl <= self.max_kl:
+            worse = not (math.isfinite(new_loss) and new_loss < loss_before)
+            too_far = not new_kl <= self.max_kl  # a NaN KL too
+            info["rejected_surrogate"] += worse
+            info["rejected_kl"] += too_far
+            if not (worse or too_far):
                 info.update(
                     surrogate_after=new_loss,
                     improvement=loss_before - new_loss,
