@@ -38,6 +38,7 @@ from umrl.configs import validate
 from umrl.configs.maml import MAMLConfig
 from umrl.heap import keep_freed_memory
 from umrl.modules import policy_log_std
+from umrl.objectives.maml import gaussian_kl
 from umrl.runtime import seed_everything
 
 BATCH_SEED_OFFSET = 1000  # the batch's streams differ from the recipe's (seed_everything(seed)) but not between runs
@@ -55,7 +56,8 @@ def run_config(state: dict, *, threads: int, skills: str | None):
 
 def sigma_kl(delta: torch.Tensor) -> float:
     """KL(N(μ, σ) ‖ N(μ, σ e^Δ)) summed over action dimensions: what a log-std change ``delta`` costs alone."""
-    return float((delta + (torch.exp(-2 * delta) - 1) / 2).sum())
+    zeros, ones = torch.zeros_like(delta), torch.ones_like(delta)
+    return gaussian_kl(zeros, ones, zeros, delta.exp()).item()
 
 
 def compare_steps(path: str, *, from_init: bool, seed: int, fractions: list[float], draws: int, threads: int,
@@ -70,9 +72,9 @@ def compare_steps(path: str, *, from_init: bool, seed: int, fractions: list[floa
         policy.load_state_dict(state["policy"])
     generator = seed_everything(BATCH_SEED_OFFSET + seed)
     support, adapted, query, _ = meta_batch(cfg, proposal, policy, loss, generator)
-    log_std = policy_log_std(policy)
     params = list(policy.parameters())
-    is_log_std = [p is log_std for p in params]
+    is_log_std = [p is policy_log_std(policy) for p in params]
+    log_std_index = is_log_std.index(True)
     start = [p.detach().clone() for p in params]
     rows, reference = [], None
     for fraction in fractions:
@@ -88,12 +90,12 @@ def compare_steps(path: str, *, from_init: bool, seed: int, fractions: list[floa
             diffs = [p.detach() - p0 for p, p0 in zip(params, start)]
             step = torch.cat([d.reshape(-1) for d in diffs])
             reference = step if reference is None else reference
-            delta = diffs[is_log_std.index(True)]
+            delta = diffs[log_std_index]
             rows.append({
                 "seed": seed, "fraction": fraction, "draw": draw, "accepted": info["accepted"],
                 "backtracks": info["backtracks"], "rejected_kl": info["rejected_kl"],
                 "rejected_surrogate": info["rejected_surrogate"], "kl": info["kl"], "improvement": info["improvement"],
-                "log_std": start[is_log_std.index(True)].mean().item(), "dlogstd": delta.mean().item(),
+                "log_std": start[log_std_index].mean().item(), "dlogstd": delta.mean().item(),
                 "kl_sigma": sigma_kl(delta) / cfg.trpo.max_kl,
                 "mean_net_norm": torch.cat([d.reshape(-1) for d, s in zip(diffs, is_log_std) if not s]).norm().item(),
                 "cosine": torch.nn.functional.cosine_similarity(step, reference, dim=0).item()
@@ -125,8 +127,8 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--fractions: got {bad}; expected values in (0, 1]")
     keep_freed_memory()
     summary = {}
-    print("run | seed | fraction | draw | accepted | trials (KL over / no improvement) | KL | improvement | log σ before | Δ log σ | "
-          "KL(σ) / max_kl | ‖Δ mean net‖ | cos vs first")
+    print("run | seed | fraction | draw | accepted | trials (KL over / no improvement) | KL | improvement | "
+          "log σ before | Δ log σ | KL(σ) / max_kl | ‖Δ mean net‖ | cos vs first")
     for label, path, from_init in runs:
         for seed in args.seeds:
             skills = args.skills.format(seed=seed) if args.skills else None
@@ -135,7 +137,8 @@ def main(argv: list[str] | None = None) -> None:
                                      skills=skills):
                 summary.setdefault((label, row["fraction"]), []).append(row)
                 print(f"{label} | {seed} | {row['fraction']:g} | {row['draw']} | {row['accepted']:.0f} | "
-                      f"{row['backtracks']:.0f} ({row['rejected_kl']:.0f} / {row['rejected_surrogate']:.0f}) | {row['kl']:.5f} | {row['improvement']:.5f} | "
+                      f"{row['backtracks']:.0f} ({row['rejected_kl']:.0f} / {row['rejected_surrogate']:.0f}) | "
+                      f"{row['kl']:.5f} | {row['improvement']:.5f} | "
                       f"{row['log_std']:.3f} | {row['dlogstd']:+.5f} | {row['kl_sigma']:.3f} | "
                       f"{row['mean_net_norm']:.4f} | {row['cosine']:.3f}", flush=True)
     print(f"\nmedians over seeds {args.seeds} and draws:")

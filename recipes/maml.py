@@ -20,9 +20,8 @@ Logged per iteration: ``train/`` return_pre, return_post (mean undiscounted retu
 trajectories), reward_mean/std/min/max (task rewards of the pre-update batch), kl, surrogate_before,
 improvement, backtracks (line-search trials; of them rejected_surrogate and rejected_kl), accepted, grad_norm,
 step_norm, log_std (θ's action log-std after the meta-step, mean over action dimensions); ``time/`` collect_s
-(rollouts + advantages),
-learn_s (inner adaptation for the post-update policy + TRPO meta-step), inner_s (that adaptation alone, built
-with the graph the meta-step differentiates through), the meta-step's parts objective_s (surrogate and KL through
+(rollouts + advantages), learn_s (inner adaptation for the post-update policy + TRPO meta-step), inner_s (that
+adaptation alone, built with the graph the meta-step differentiates through), the meta-step's parts objective_s (surrogate and KL through
 the inner step), direction_s (gradient, HVP set-up, ``trpo.cg_iters`` products), cg_s (those products alone) and
 line_search_s, env_steps_per_s (pre + post env steps per second of collect_s), env_steps. Checkpoints: ``<output_dir>/checkpoints/step_<iteration>.pt`` (format in :mod:`umrl.checkpoints.maml`).
 """
