@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from umrl.checkpoints import load_maml_policy
+from umrl.checkpoints.labels import labelled_path
 from umrl.envs.tasks import get_task_family
 from umrl.heap import keep_freed_memory
 from umrl.metatest import AdaptationConfig, Initialisation, meta_test
@@ -51,7 +52,7 @@ def parse_log_std(value: str) -> float | None:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--run", action="append", required=True, metavar="LABEL=PATH",
+    parser.add_argument("--run", action="append", required=True, type=labelled_path, metavar="LABEL=PATH",
                         help="a MAML run directory or checkpoint; {seed} is replaced by each seed")
     parser.add_argument("--log-std", nargs="+", type=parse_log_std, default=[None], metavar="saved|VALUE")
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
@@ -62,19 +63,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--schedule", choices=SGD_SCHEDULES, default="reference")
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args(argv)
-    runs = []
-    for spec in args.run:
-        label, sep, path = spec.partition("=")
-        if not sep or not label or not path:
-            parser.error(f"--run: got {spec!r}; expected LABEL=PATH")
-        runs.append((label, path))
     torch.set_num_threads(args.threads)
     keep_freed_memory()
     config = AdaptationConfig(num_steps=args.steps, num_trajectories=args.trajectories, sgd_schedule=args.schedule)
     tasks = get_task_family(args.env).eval_tasks(args.num_tasks)
     steps = "".join(f"{f'k={k}':>9}" for k in range(args.steps + 1))
     print(f"{'run':<16}{'log-std':>9}{'saved':>8}{steps}  AUC k <= {args.steps} IQM [95 % CI]", flush=True)
-    for label, path in runs:
+    for label, path in args.run:
         for log_std in args.log_std:
             saved, returns = zip(*(adapt(path.format(seed=seed), log_std, env=args.env, tasks=tasks, seed=seed,
                                          config=config) for seed in args.seeds), strict=True)

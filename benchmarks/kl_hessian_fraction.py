@@ -34,6 +34,7 @@ from omegaconf import OmegaConf
 
 from recipes.maml import build, meta_batch, meta_step
 from umrl.checkpoints import load_maml_checkpoint
+from umrl.checkpoints.labels import labelled_path
 from umrl.configs import validate
 from umrl.configs.maml import MAMLConfig
 from umrl.heap import keep_freed_memory
@@ -107,7 +108,7 @@ def compare_steps(path: str, *, from_init: bool, seed: int, fractions: list[floa
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--run", action="append", required=True, metavar="LABEL=PATH[:init]",
+    parser.add_argument("--run", action="append", required=True, type=labelled_path, metavar="LABEL=PATH[:init]",
                         help="a MAML run directory or checkpoint; {seed} is replaced by each seed")
     parser.add_argument("--fractions", nargs="+", type=float, default=[1.0, 0.1])
     parser.add_argument("--draws", type=int, default=3, help="subsamples per fraction below 1")
@@ -115,13 +116,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--skills", help="DIAYN skills for DIAYN proposals; {seed} is replaced")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args(argv)
-    runs = []
-    for spec in args.run:
-        label, sep, path = spec.partition("=")
-        if not sep or not label or not path:
-            parser.error(f"--run: got {spec!r}; expected LABEL=PATH or LABEL=PATH:init")
-        from_init = path.endswith(":init")
-        runs.append((label, path.removesuffix(":init"), from_init))
+    runs = [(label, path.removesuffix(":init"), path.endswith(":init")) for label, path in args.run]
     bad = [f for f in args.fractions if not 0 < f <= 1]
     if bad:
         parser.error(f"--fractions: got {bad}; expected values in (0, 1]")

@@ -238,3 +238,13 @@ def test_kl_hessian_fraction_steps_from_one_batch_and_undoes_each_step(tmp_path,
     with pytest.raises(SystemExit):
         bench.main(["--run", f"tiny={tmp_path}", "--fractions", "1.5"])
     assert "--fractions: got [1.5]; expected values in (0, 1]" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("script", ["benchmarks/action_noise.py", "benchmarks/kl_hessian_fraction.py"])
+@pytest.mark.parametrize("spec", ["no-label", "=path", "label="])
+def test_run_options_refuse_a_value_without_label_and_path(script, spec, capsys):
+    from script_loading import load_script
+
+    with pytest.raises(SystemExit):
+        load_script(script).main(["--run", spec])
+    assert f"--run: got {spec!r}; expected LABEL=PATH" in capsys.readouterr().err
