@@ -206,3 +206,37 @@ def test_cuda_without_a_gpu_fails_at_the_start(tmp_path):
 
 def test_make_env_defaults_to_cpu():
     assert make_env("point_nav", 2).device == torch.device("cpu")
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("hvp_fraction", [1.0, 0.5])
+def test_meta_step_from_one_batch_is_the_cpus_on_every_device(device, hvp_fraction):
+    """The MAML recipe's TRPO meta-step from the same parameters, batch and subsample generator takes the CPU's step
+    on ``device``: the same line-search trials, parameters equal to float rounding (bit for bit on the CPU). A GPU
+    run's numbers may differ from a CPU run's only through its own random draws, not through the update."""
+    overrides = ["env.horizon=20", "meta_batch_size=4", "trajectories_per_task=4", "policy.hidden=[32, 32]",
+                 f"trpo.hvp_fraction={hvp_fraction}", "logger.backend=none", "progress=false"]
+    cfg = compose("maml", ["device=cpu", *overrides])
+    proposal, policy, loss, trpo = recipes.maml.build(cfg)
+    initial = {k: v.clone() for k, v in policy.state_dict().items()}
+    support, adapted, query, _ = recipes.maml.meta_batch(cfg, proposal, policy, loss, torch.Generator().manual_seed(0))
+    reference = recipes.maml.meta_step(cfg, loss, trpo, support, query, adapted, torch.Generator().manual_seed(1))
+
+    cfg = compose("maml", [f"device={device}", *overrides])
+    _, other_policy, other_loss, other_trpo = recipes.maml.build(cfg)
+    other_policy.load_state_dict(initial)
+    support, query = support.to(device), query.to(device)
+    with torch.enable_grad():
+        other_adapted = other_loss.adapt(support)
+    info = recipes.maml.meta_step(cfg, other_loss, other_trpo, support, query, other_adapted,
+                                  torch.Generator().manual_seed(1))
+
+    assert reference["accepted"] == 1.0
+    assert (info["accepted"], info["backtracks"]) == (reference["accepted"], reference["backtracks"])
+    stepped = policy.state_dict()
+    assert any(not torch.equal(stepped[k], initial[k]) for k in initial)
+    for key, value in other_policy.state_dict().items():
+        if device == "cpu":
+            assert torch.equal(value, stepped[key]), key
+        else:
+            torch.testing.assert_close(value.cpu(), stepped[key], rtol=1e-4, atol=1e-5, msg=key)
