@@ -73,8 +73,8 @@ def compare_steps(path: str, *, from_init: bool, seed: int, fractions: list[floa
         policy.load_state_dict(state["policy"])
     generator = seed_everything(BATCH_SEED_OFFSET + seed)
     support, adapted, query, _ = meta_batch(cfg, proposal, policy, loss, generator)
-    params = list(policy.parameters())
-    is_log_std = [p is policy_log_std(policy) for p in params]
+    params, log_std = list(policy.parameters()), policy_log_std(policy)
+    is_log_std = [p is log_std for p in params]
     log_std_index = is_log_std.index(True)
     start = [p.detach().clone() for p in params]
     rows, reference = [], None
