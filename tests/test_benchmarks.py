@@ -240,7 +240,43 @@ def test_kl_hessian_fraction_steps_from_one_batch_and_undoes_each_step(tmp_path,
     assert "--fractions: got [1.5]; expected values in (0, 1]" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("script", ["benchmarks/action_noise.py", "benchmarks/kl_hessian_fraction.py"])
+def test_step_size_reproduces_the_suites_update_at_its_own_scale(tmp_path, capsys):
+    """At the reference schedule's own scale (1 at the first update, 0.5 later) the scaled update's returns are
+    meta_test's at that step; scale 0 leaves the action means where they were; negative scales are refused."""
+    import numpy as np
+    from script_loading import load_script
+
+    from recipes import compose
+    from recipes.maml import train
+    from umrl.envs.tasks import get_task_family
+    from umrl.metatest import AdaptationConfig, load_initialisation, meta_test
+
+    train(compose("maml", ["proposal=oracle", "iterations=1", "meta_batch_size=2", "trajectories_per_task=2",
+                           "env.horizon=10", "policy.hidden=[16]", "logger.backend=none", "progress=false",
+                           f"output_dir={tmp_path}"]))
+    bench = load_script("benchmarks/step_size.py")
+    config = AdaptationConfig(num_steps=2, num_trajectories=3, horizon=10, sgd_schedule="reference")
+    tasks = get_task_family("point_nav").eval_tasks(2)
+    init = load_initialisation("oracle", "point_nav", tmp_path, seed=1)
+    expected, _ = meta_test(init, "point_nav", tasks, lr=init.lr, seed=1, config=config, skill_trajectories=1)
+    for step, own_scale in ((1, 1.0), (2, 0.5)):
+        out = bench.scaled_step(str(tmp_path), step=step, scales=[0.0, own_scale, 3.0], env_name="point_nav",
+                                tasks=tasks, seed=1, config=config)
+        np.testing.assert_array_equal(out["returns"][1], expected[step].numpy())
+        assert out["rms_shift"][0] == 0.0 < out["rms_shift"][1] < out["rms_shift"][2]
+
+    bench.main(["--run", f"tiny={tmp_path}", "--step", "2", "--scales", "0", "0.5", "--seeds", "1",
+                "--num-tasks", "2", "--trajectories", "3"])
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[1].split() == ["run", "seed", "c=0", "c=0.5"]
+    assert [line.split()[:2] for line in lines[2:]] == [["tiny", "1"], ["tiny", "all"]]
+    with pytest.raises(SystemExit):
+        bench.main(["--run", f"tiny={tmp_path}", "--scales", "-1"])
+    assert "--scales: got [-1.0]; expected values >= 0" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("script", ["benchmarks/action_noise.py", "benchmarks/kl_hessian_fraction.py",
+                                    "benchmarks/step_size.py"])
 @pytest.mark.parametrize("spec", ["no-label", "=path", "label="])
 def test_run_options_refuse_a_value_without_label_and_path(script, spec, capsys):
     from script_loading import load_script
