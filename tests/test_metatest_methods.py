@@ -66,6 +66,8 @@ BASE = {"method": "scratch", "env": "point_nav", "seed": 0, "output": "x.csv"}
     ({"sweep": {"lrs": []}}, "sweep.lrs", "[]", "a non-empty list of learning rates > 0"),
     ({"sweep": {"lrs": [1e-3, 0]}}, "sweep.lrs[1]", "0", "a finite number > 0"),
     ({"sweep": {"num_steps": 0}}, "sweep.num_steps", "0", "an integer >= 1"),
+    ({"sweep": {"later_factors": []}}, "sweep.later_factors", "[]", "a non-empty list of factors > 0"),
+    ({"sweep": {"later_factors": [0.5, -1]}}, "sweep.later_factors[1]", "-1", "a finite number > 0"),
 ])
 def test_cell_spec_rejects_bad_values_naming_key_value_and_accepted(override, key, shown, accepted):
     with pytest.raises((ValueError, TypeError)) as err:
@@ -74,7 +76,8 @@ def test_cell_spec_rejects_bad_values_naming_key_value_and_accepted(override, ke
 
 
 def test_cell_spec_rejects_bad_protocol_and_unknown_keys():
-    with pytest.raises(ValueError, match=r"protocol.sgd_schedule: got 'alpha/2'; expected one of 'constant', 'reference'"):
+    with pytest.raises(ValueError, match=r"protocol.sgd_schedule: got 'alpha/2'; expected one of 'constant', "
+                                         r"'reference', 'swept'"):
         CellSpec.from_mapping({**BASE, "protocol": {"sgd_schedule": "alpha/2"}})
     with pytest.raises(ValueError, match=r"protocol.num_steps: got -1; expected an integer >= 0"):
         CellSpec.from_mapping({**BASE, "protocol": {"num_steps": -1}})
@@ -95,3 +98,44 @@ def test_run_cell_writes_rows_with_schedule_and_skips_finished(tmp_path):
     mtime = (tmp_path / "cell.csv").stat().st_mtime_ns
     run_cell(spec)
     assert (tmp_path / "cell.csv").stat().st_mtime_ns == mtime
+
+
+def test_swept_schedule_picks_the_later_factor_on_the_sweep_tasks(tmp_path):
+    """A ``swept`` cell adapts each sweep-task trial with one factor, keeps the best mean AUC (recorded with the
+    scores), and its evaluation is meta_test's with that factor; the Adam lr sweep stays off."""
+    import json
+
+    import numpy as np
+
+    from recipes import compose
+    from recipes.maml import train
+    from umrl.envs.tasks import get_task_family
+    from umrl.metatest import load_initialisation, meta_test
+    from umrl.metatest.protocol import sweep_tasks
+    from umrl.metatest.stats import auc
+
+    train(compose("maml", ["proposal=oracle", "iterations=1", "meta_batch_size=2", "trajectories_per_task=2",
+                           "env.horizon=10", "policy.hidden=[16]", "logger.backend=none", "progress=false",
+                           f"output_dir={tmp_path / 'run'}"]))
+    protocol = {"num_steps": 3, "num_trajectories": 3, "horizon": 10, "sgd_schedule": "swept"}
+    spec = CellSpec.from_mapping({"method": "oracle", "env": "point_nav", "seed": 2, "num_tasks": 2,
+                                  "checkpoint": str(tmp_path / "run"), "output": str(tmp_path / "cell.csv"),
+                                  "protocol": protocol,
+                                  "sweep": {"later_factors": [0.01, 4.0], "num_tasks": 2, "num_steps": 3}})
+    rows = read_rows([run_cell(spec)])
+    info = json.loads((tmp_path / "cell.json").read_text())
+    init = load_initialisation("oracle", "point_nav", tmp_path / "run", seed=2)
+    config = AdaptationConfig(**protocol)
+    scores = {}
+    for factor in (0.01, 4.0):
+        trial, _ = meta_test(init, "point_nav", sweep_tasks("point_nav", 2, 2), lr=init.lr, seed=2,
+                             config=dataclasses.replace(config, sgd_later_factor=factor), skill_trajectories=4)
+        scores[factor] = float(auc(trial.numpy().T).mean())
+    assert info["later_factor_scores"] == {str(f): pytest.approx(v) for f, v in scores.items()}
+    chosen = max(scores, key=scores.get)
+    assert info["protocol"]["sgd_later_factor"] == chosen and "sweep_scores" not in info
+    expected, _ = meta_test(init, "point_nav", get_task_family("point_nav").eval_tasks(2), lr=init.lr, seed=2,
+                            config=dataclasses.replace(config, sgd_later_factor=chosen), skill_trajectories=4)
+    got = np.array([[r["return"] for r in rows if r["step"] == k] for k in range(4)])
+    np.testing.assert_allclose(got, expected.numpy(), rtol=1e-6)
+    assert {r["lr_schedule"] for r in rows} == {"swept"}

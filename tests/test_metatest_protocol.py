@@ -138,21 +138,27 @@ def test_sweep_picks_the_best_lr_on_the_given_tasks():
 def test_sgd_lr_factor_schedules_by_hand():
     assert [sgd_lr_factor("constant", k) for k in range(4)] == [1.0, 1.0, 1.0, 1.0]
     assert [sgd_lr_factor("reference", k) for k in range(4)] == [1.0, 0.5, 0.5, 0.5]  # alpha, then alpha / 2
-    with pytest.raises(ValueError, match=r"sgd_schedule.*\['constant', 'reference'\].*'halving'"):
+    assert [sgd_lr_factor("reference", k, 0.125) for k in range(3)] == [1.0, 0.5, 0.5]  # always the MAML code's
+    assert [sgd_lr_factor("swept", k, 0.125) for k in range(3)] == [1.0, 0.125, 0.125]
+    with pytest.raises(ValueError, match=r"sgd_schedule.*\['constant', 'reference', 'swept'\].*'halving'"):
         sgd_lr_factor("halving", 0)
     with pytest.raises(ValueError, match=r"protocol.sgd_schedule.*'halving'"):
         AdaptationConfig(sgd_schedule="halving")
+    with pytest.raises(ValueError, match=r"protocol.sgd_later_factor: got 0; expected a finite number > 0"):
+        AdaptationConfig(sgd_schedule="swept", sgd_later_factor=0)
 
 
 @pytest.mark.parametrize("optimizer, schedule, expected", [
     ("sgd", "constant", [0.2, 0.2, 0.2]),
     ("sgd", "reference", [0.2, 0.1, 0.1]),
+    ("sgd", "swept", [0.2, 0.05, 0.05]),
     ("adam", "reference", [0.2, 0.2, 0.2]),  # the schedule is SGD's; Adam keeps its lr
 ])
 def test_adapter_steps_follow_the_schedule(optimizer, schedule, expected):
     torch.manual_seed(0)
     policy = make_gaussian_policy(2, 2, hidden=(8,))
-    config = AdaptationConfig(num_steps=3, num_trajectories=4, horizon=10, sgd_schedule=schedule)
+    config = AdaptationConfig(num_steps=3, num_trajectories=4, horizon=10, sgd_schedule=schedule,
+                              sgd_later_factor=0.25)  # used by "swept" only
     adapter = TaskAdapter(policy, make_eval_env("point_nav", GOALS, 4, seed=0, horizon=10), len(GOALS),
                           optimizer=optimizer, lr=0.2, config=config)
     used = []

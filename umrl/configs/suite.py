@@ -97,6 +97,7 @@ class ProtocolConfig:
 class SweepConfig:
     enabled: bool = boolean()
     lrs: list[float] = number_list(min_len=1, gt=0)
+    later_factors: list[float] = number_list(min_len=1, gt=0)
     num_tasks: int = integer(min=1)
     num_steps: int = integer(min=1)
 

@@ -184,11 +184,14 @@ def meta_test(init: Initialisation, env_name: str, tasks: torch.Tensor, *, lr: f
 
 @dataclass(frozen=True)
 class SweepConfig:
-    """Learning-rate sweep of the Adam methods: best mean AUC over ``lrs`` on ``num_tasks`` non-evaluation tasks,
-    each adapted for ``num_steps`` steps (``enabled=False``: use ``CellSpec.adam_lr``)."""
+    """Step-size sweeps on ``num_tasks`` non-evaluation tasks, each adapted for ``num_steps`` steps, keeping the
+    best mean AUC: the Adam methods' learning rate over ``lrs`` (``enabled=False``: use ``CellSpec.adam_lr``), and
+    for the ``"swept"`` SGD schedule (always swept) the factor of ``α`` after the first update over
+    ``later_factors``."""
 
     enabled: bool = False
     lrs: tuple[float, ...] = (1e-4, 3e-4, 1e-3, 3e-3)
+    later_factors: tuple[float, ...] = (0.0625, 0.125, 0.25, 0.5)
     num_tasks: int = 5
     num_steps: int = 5
 
@@ -196,6 +199,9 @@ class SweepConfig:
         check_bool("sweep.enabled", self.enabled)
         lrs = check_list("sweep.lrs", self.lrs, check_positive, min_len=1, what="learning rates > 0")
         object.__setattr__(self, "lrs", tuple(lrs))
+        factors = check_list("sweep.later_factors", self.later_factors, check_positive, min_len=1,
+                             what="factors > 0")
+        object.__setattr__(self, "later_factors", tuple(factors))
         for key in ("num_tasks", "num_steps"):
             check_int(f"sweep.{key}", getattr(self, key), min=1)
 
@@ -300,20 +306,26 @@ def run_cell(spec: CellSpec) -> str:
     init = load_initialisation(spec.method, spec.env, spec.checkpoint, seed=spec.seed, device=device)
     info: dict = {"method": spec.method, "env": spec.env, "seed": spec.seed, "checkpoint": spec.checkpoint,
                   "num_tasks": spec.num_tasks, "skill_trajectories": spec.skill_trajectories}
+    sweep_config = replace(config, num_steps=spec.sweep.num_steps)
+
+    def trial(trial_lr: float, trial_config: AdaptationConfig, tasks: torch.Tensor) -> torch.Tensor:
+        # meta_test adapts copies of init's parameters and reseeds: one init serves every trial
+        return meta_test(init, spec.env, tasks, lr=trial_lr, seed=spec.seed, config=trial_config,
+                         skill_trajectories=spec.skill_trajectories, device=device)[0]
+
+    tasks_of_sweep = sweep_tasks(spec.env, spec.sweep.num_tasks, spec.seed)
     if init.optimizer == "sgd":
         lr = float(spec.sgd_lr) if spec.sgd_lr is not None else init.lr
+        if config.sgd_schedule == "swept":
+            factor, info["later_factor_scores"] = sweep_learning_rate(
+                lambda f, tasks: trial(lr, replace(sweep_config, sgd_later_factor=f), tasks),
+                list(spec.sweep.later_factors), tasks_of_sweep)
+            config = replace(config, sgd_later_factor=factor)
     else:
         lr = float(spec.adam_lr)
         if spec.sweep.enabled:
-            sweep_config = replace(config, num_steps=spec.sweep.num_steps)
-
-            def trial(trial_lr: float, tasks: torch.Tensor) -> torch.Tensor:
-                # meta_test adapts copies of init's parameters and reseeds: one init serves every trial
-                return meta_test(init, spec.env, tasks, lr=trial_lr, seed=spec.seed, config=sweep_config,
-                                 skill_trajectories=spec.skill_trajectories, device=device)[0]
-
             lr, info["sweep_scores"] = sweep_learning_rate(
-                trial, list(spec.sweep.lrs), sweep_tasks(spec.env, spec.sweep.num_tasks, spec.seed))
+                lambda trial_lr, tasks: trial(trial_lr, sweep_config, tasks), list(spec.sweep.lrs), tasks_of_sweep)
     tasks = get_task_family(spec.env).eval_tasks(spec.num_tasks)
     lengths = []  # [K + 1] x [T]: mean episode length per task at each step, beside the returns
 

@@ -14,7 +14,9 @@ For a policy initialisation and a set of held-out tasks ``[T, task_dim]``:
 
 SGD follows ``AdaptationConfig.sgd_schedule`` (:func:`sgd_lr_factor`): ``"constant"`` takes every step at ``α``;
 ``"reference"`` is the MAML reference code's test-time schedule, ``α`` for the first step and ``α / 2`` for every
-later one. Adam always runs at a constant learning rate.
+later one; ``"swept"`` (an ablation, not the paper's protocol) takes ``α`` first and ``f · α`` later, with ``f``
+(``AdaptationConfig.sgd_later_factor``) picked per cell on the sweep tasks. Adam always runs at a constant learning
+rate.
 
 DIAYN-init first picks, for every task, the skill whose rollouts earn the highest task return
 (:func:`select_skills`); the learning-rate sweep (:func:`sweep_learning_rate`) runs on tasks drawn apart from the
@@ -38,23 +40,26 @@ from umrl.objectives.policy_gradient import compute_advantages, episode_returns,
 from umrl.rollout import FunctionalPolicy, collect
 from umrl.runtime import check_finite
 from umrl.transforms.skill import SkillTransform
-from umrl.validation import check_choice, check_int
+from umrl.validation import check_choice, check_int, check_positive
 
 OPTIMIZERS = ("sgd", "adam")
 #: SGD step-size schedules at meta-test (see :func:`sgd_lr_factor`).
-SGD_SCHEDULES = ("constant", "reference")
+SGD_SCHEDULES = ("constant", "reference", "swept")
 #: Offset added to the cell seed to draw learning-rate sweep tasks (never the held-out evaluation tasks).
 SWEEP_SEED_OFFSET = 7919
 
 
-def sgd_lr_factor(schedule: str, step: int) -> float:
+def sgd_lr_factor(schedule: str, step: int, later_factor: float = 0.5) -> float:
     """Multiplier of the SGD learning rate ``α`` for update ``step`` (0-based) under ``schedule``.
 
     ``"constant"``: 1 for every step. ``"reference"`` (the MAML reference code at test time): 1 for step 0, then 0.5.
+    ``"swept"``: 1 for step 0, then ``later_factor``.
     """
     if schedule not in SGD_SCHEDULES:
         raise ValueError(f"sgd_schedule must be one of {list(SGD_SCHEDULES)}, got {schedule!r}.")
-    return 1.0 if schedule == "constant" or step == 0 else 0.5
+    if schedule == "constant" or step == 0:
+        return 1.0
+    return 0.5 if schedule == "reference" else later_factor
 
 
 @dataclass(frozen=True)
@@ -67,7 +72,10 @@ class AdaptationConfig:
         horizon: ``H`` env steps per trajectory.
         gamma, lmbda: discount and GAE λ of the advantages.
         normalize_advantage: standardise each task's advantages (rllab's ``center_adv``, as MAML's inner step).
-        sgd_schedule: ``"constant"`` or ``"reference"`` (:func:`sgd_lr_factor`); applies to ``optimizer="sgd"``.
+        sgd_schedule: ``"constant"``, ``"reference"`` or ``"swept"`` (:func:`sgd_lr_factor`); applies to
+            ``optimizer="sgd"``.
+        sgd_later_factor: ``"swept"``'s factor of ``α`` after the first update (> 0); a suite cell replaces it with
+            the best of ``sweep.later_factors`` on the sweep tasks. Ignored by the other schedules.
     """
 
     num_steps: int = 10
@@ -77,12 +85,14 @@ class AdaptationConfig:
     lmbda: float = 1.0
     normalize_advantage: bool = True
     sgd_schedule: str = "constant"
+    sgd_later_factor: float = 0.5
 
     def __post_init__(self):
         check_int("protocol.num_steps", self.num_steps, min=0)
         check_int("protocol.num_trajectories", self.num_trajectories, min=1)
         check_int("protocol.horizon", self.horizon, min=1)
         check_choice("protocol.sgd_schedule", self.sgd_schedule, SGD_SCHEDULES)
+        check_positive("protocol.sgd_later_factor", self.sgd_later_factor)
 
 
 def make_eval_env(env_name: str, tasks: torch.Tensor, num_trajectories: int, *, seed: int, horizon: int,
@@ -146,8 +156,9 @@ class TaskAdapter:
         self.optimizer = cls(leaves, lr=lr)
         self.scheduler = None
         if optimizer == "sgd":
-            schedule = config.sgd_schedule
-            self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda k: sgd_lr_factor(schedule, k))
+            schedule, later = config.sgd_schedule, config.sgd_later_factor
+            self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer,
+                                                               lambda k: sgd_lr_factor(schedule, k, later))
 
     def collect(self) -> TensorDictBase:
         """Roll out ``N`` trajectories per task with each task's current parameters: a ``[T, N, H]`` TensorDict."""
@@ -208,10 +219,11 @@ def select_skills(policy: TensorDictModuleBase, env_name: str, tasks: torch.Tens
 
 def sweep_learning_rate(run: Callable[[float, torch.Tensor], torch.Tensor], lrs: Sequence[float],
                         tasks: torch.Tensor) -> tuple[float, dict[float, float]]:
-    """Pick the learning rate whose adaptation has the largest mean AUC on ``tasks`` (never the evaluation tasks).
+    """Pick the step size whose adaptation has the largest mean AUC on ``tasks`` (never the evaluation tasks): the
+    Adam learning rate, or the ``"swept"`` SGD schedule's later-step factor.
 
     Args:
-        run: ``run(lr, tasks) -> returns [K + 1, T]`` (a full adaptation from the initialisation).
+        run: ``run(value, tasks) -> returns [K + 1, T]`` (a full adaptation from the initialisation).
         lrs: the grid.
         tasks: sweep tasks ``[T', task_dim]``.
 
