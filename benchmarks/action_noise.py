@@ -61,11 +61,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--num-tasks", type=int, default=20)
     parser.add_argument("--trajectories", type=int, default=20, help="per task and step (the quick profile's 20)")
     parser.add_argument("--schedule", choices=SGD_SCHEDULES, default="reference")
+    parser.add_argument("--later-factor", type=float, default=0.5,
+                        help="the swept schedule's factor of the inner lr after the first step (not swept here)")
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     keep_freed_memory()
-    config = AdaptationConfig(num_steps=args.steps, num_trajectories=args.trajectories, sgd_schedule=args.schedule)
+    try:
+        config = AdaptationConfig(num_steps=args.steps, num_trajectories=args.trajectories,
+                                  sgd_schedule=args.schedule, sgd_later_factor=args.later_factor)
+    except ValueError as error:
+        parser.error(str(error))
     tasks = get_task_family(args.env).eval_tasks(args.num_tasks)
     steps = "".join(f"{f'k={k}':>9}" for k in range(args.steps + 1))
     print(f"{'run':<16}{'log-std':>9}{'saved':>8}{steps}  AUC k <= {args.steps} IQM [95 % CI]", flush=True)

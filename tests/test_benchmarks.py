@@ -275,6 +275,14 @@ def test_step_size_reproduces_the_suites_update_at_its_own_scale(tmp_path, capsy
     assert "--scales: got [-1.0]; expected values >= 0" in capsys.readouterr().err
 
 
+def test_action_noise_refuses_a_later_factor_the_protocol_refuses(capsys):
+    from script_loading import load_script
+
+    with pytest.raises(SystemExit):
+        load_script("benchmarks/action_noise.py").main(["--run", "x=y", "--schedule", "swept", "--later-factor", "0"])
+    assert "protocol.sgd_later_factor: got 0.0; expected a finite number > 0" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("script", ["benchmarks/action_noise.py", "benchmarks/kl_hessian_fraction.py",
                                     "benchmarks/step_size.py"])
 @pytest.mark.parametrize("spec", ["no-label", "=path", "label="])
