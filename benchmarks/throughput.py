@@ -7,7 +7,8 @@ Usage::
     python benchmarks/throughput.py --envs half_cheetah --mujoco-batches 800 --repeats 7
 
 Every configuration is timed ``--repeats`` times, interleaved (repeat r of every configuration runs before repeat
-r + 1 of any), after one untimed warm-up call; the table gives the median env steps/s and, per env and batch size,
+r + 1 of any), after one untimed warm-up call, with Python's garbage collector off inside each timed call (as
+``timeit``); the table gives the median env steps/s and, per env and batch size,
 the ratio to the reference row (``ref``). On a shared machine the absolute numbers are noisy: compare ratios.
 
 Rows, per env and batch size ``B`` (policy = the 2x300 Gaussian MLP of :mod:`umrl.modules.policy`, sampled):
@@ -39,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import gc
 import os
 import statistics
 import sys
@@ -301,9 +303,13 @@ def run_benchmarks(benches: list[Bench], repeats: int,
     for r in range(repeats):
         print(f"repeat {r + 1}/{repeats}", file=sys.stderr, flush=True)
         for i, run in runs.items():
-            start = time.perf_counter()
-            n = run()
-            rates[i].append(n / (time.perf_counter() - start))
+            gc.disable()  # as timeit does: a collection of earlier garbage would land in one timed call
+            try:
+                start = time.perf_counter()
+                n = run()
+                rates[i].append(n / (time.perf_counter() - start))
+            finally:
+                gc.enable()
         if after_repeat is not None:
             after_repeat(rates)
     return rates
