@@ -49,7 +49,7 @@ def scaled_step(path: str, *, step: int, scales: list[float], env_name: str, tas
     batch = adapter.collect()
     before = adapter.params.detach().clone()
     adapter.step(batch)  # leaves the update's gradient in each leaf's .grad
-    leaves = [p for p in adapter.params.values(True, True) if p.is_floating_point()]
+    leaves = adapter.optimizer.param_groups[0]["params"]  # the per-task parameters the update moved
     gradients = [p.grad.clone() for p in leaves]
     mask = batch["mask"]
     loc_before = adapter.functional.dist_params(before, batch)["loc"][mask]

@@ -33,3 +33,17 @@ def tiny_diayn_checkpoint(tmp_path, request):
     DIAYN_FORMAT.save(Checkpointer(directory / "checkpoints"), 1, meta, discriminator=discriminator.state_dict(),
                       actor=actor.state_dict())
     return directory, discriminator
+
+
+@pytest.fixture
+def tiny_maml_run(tmp_path):
+    """A one-iteration oracle MAML run on point_nav (2 tasks × 2 trajectories, horizon 10, one 16-unit layer) in
+    ``tmp_path / "maml"``; returns the run directory."""
+    from recipes import compose
+    from recipes.maml import train
+
+    directory = tmp_path / "maml"
+    train(compose("maml", ["proposal=oracle", "iterations=1", "meta_batch_size=2", "trajectories_per_task=2",
+                           "env.horizon=10", "policy.hidden=[16]", "logger.backend=none", "progress=false",
+                           f"output_dir={directory}"]))
+    return directory

@@ -164,40 +164,35 @@ def test_throughput_scaling_prints_the_table_after_every_repeat(capsys):
             assert serial <= overlap <= 1 and serial == overlap
 
 
-def test_action_noise_adapts_like_the_suite_and_replaces_only_the_log_std(tmp_path, capsys):
+def test_action_noise_adapts_like_the_suite_and_replaces_only_the_log_std(tiny_maml_run, capsys):
     """Its ``saved`` arm is the suite's MAML cell (same returns as meta_test of load_initialisation); a replaced
     log-std changes the sampled noise and nothing else; the table has one row per run and log-std."""
     import numpy as np
     from script_loading import load_script
     from tensordict import TensorDict
 
-    from recipes import compose
-    from recipes.maml import train
     from umrl.checkpoints import load_maml_policy
     from umrl.envs.tasks import get_task_family
     from umrl.metatest import AdaptationConfig, load_initialisation, meta_test
     from umrl.modules import policy_log_std
 
-    train(compose("maml", ["proposal=oracle", "iterations=1", "meta_batch_size=2", "trajectories_per_task=2",
-                           "env.horizon=10", "policy.hidden=[16]", "logger.backend=none", "progress=false",
-                           f"output_dir={tmp_path}"]))
     bench = load_script("benchmarks/action_noise.py")
     config = AdaptationConfig(num_steps=2, num_trajectories=3, horizon=10, sgd_schedule="reference")
     tasks = get_task_family("point_nav").eval_tasks(2)
-    saved, returns = bench.adapt(str(tmp_path), None, env="point_nav", tasks=tasks, seed=1, config=config)
-    init = load_initialisation("oracle", "point_nav", tmp_path, seed=1)
+    saved, returns = bench.adapt(str(tiny_maml_run), None, env="point_nav", tasks=tasks, seed=1, config=config)
+    init = load_initialisation("oracle", "point_nav", tiny_maml_run, seed=1)
     expected, _ = meta_test(init, "point_nav", tasks, lr=init.lr, seed=1, config=config, skill_trajectories=1)
     np.testing.assert_array_equal(returns, expected.numpy())
-    assert saved == policy_log_std(load_maml_policy(tmp_path)[0]).mean().item()
+    assert saved == policy_log_std(load_maml_policy(tiny_maml_run)[0]).mean().item()
 
-    policy = load_maml_policy(tmp_path)[0]
+    policy = load_maml_policy(tiny_maml_run)[0]
     policy_log_std(policy).data.fill_(-3.0)
     out = policy(TensorDict({"observation": torch.zeros(4, 2)}, [4]))
     torch.testing.assert_close(out["scale"], torch.full((4, 2), float(np.exp(-3.0))))
-    _, replaced = bench.adapt(str(tmp_path), -3.0, env="point_nav", tasks=tasks, seed=1, config=config)
+    _, replaced = bench.adapt(str(tiny_maml_run), -3.0, env="point_nav", tasks=tasks, seed=1, config=config)
     assert not np.array_equal(replaced, returns)
 
-    bench.main(["--run", f"tiny={tmp_path}", "--log-std", "saved", "-3", "--seeds", "1", "--steps", "2",
+    bench.main(["--run", f"tiny={tiny_maml_run}", "--log-std", "saved", "-3", "--seeds", "1", "--steps", "2",
                 "--num-tasks", "2", "--trajectories", "3"])
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].split()[:6] == ["run", "log-std", "saved", "k=0", "k=1", "k=2"]
@@ -240,38 +235,33 @@ def test_kl_hessian_fraction_steps_from_one_batch_and_undoes_each_step(tmp_path,
     assert "--fractions: got [1.5]; expected values in (0, 1]" in capsys.readouterr().err
 
 
-def test_step_size_reproduces_the_suites_update_at_its_own_scale(tmp_path, capsys):
+def test_step_size_reproduces_the_suites_update_at_its_own_scale(tiny_maml_run, capsys):
     """At the reference schedule's own scale (1 at the first update, 0.5 later) the scaled update's returns are
     meta_test's at that step; scale 0 leaves the action means where they were; negative scales are refused."""
     import numpy as np
     from script_loading import load_script
 
-    from recipes import compose
-    from recipes.maml import train
     from umrl.envs.tasks import get_task_family
     from umrl.metatest import AdaptationConfig, load_initialisation, meta_test
 
-    train(compose("maml", ["proposal=oracle", "iterations=1", "meta_batch_size=2", "trajectories_per_task=2",
-                           "env.horizon=10", "policy.hidden=[16]", "logger.backend=none", "progress=false",
-                           f"output_dir={tmp_path}"]))
     bench = load_script("benchmarks/step_size.py")
     config = AdaptationConfig(num_steps=2, num_trajectories=3, horizon=10, sgd_schedule="reference")
     tasks = get_task_family("point_nav").eval_tasks(2)
-    init = load_initialisation("oracle", "point_nav", tmp_path, seed=1)
+    init = load_initialisation("oracle", "point_nav", tiny_maml_run, seed=1)
     expected, _ = meta_test(init, "point_nav", tasks, lr=init.lr, seed=1, config=config, skill_trajectories=1)
     for step, own_scale in ((1, 1.0), (2, 0.5)):
-        out = bench.scaled_step(str(tmp_path), step=step, scales=[0.0, own_scale, 3.0], env_name="point_nav",
+        out = bench.scaled_step(str(tiny_maml_run), step=step, scales=[0.0, own_scale, 3.0], env_name="point_nav",
                                 tasks=tasks, seed=1, config=config)
         np.testing.assert_array_equal(out["returns"][1], expected[step].numpy())
         assert out["rms_shift"][0] == 0.0 < out["rms_shift"][1] < out["rms_shift"][2]
 
-    bench.main(["--run", f"tiny={tmp_path}", "--step", "2", "--scales", "0", "0.5", "--seeds", "1",
+    bench.main(["--run", f"tiny={tiny_maml_run}", "--step", "2", "--scales", "0", "0.5", "--seeds", "1",
                 "--num-tasks", "2", "--trajectories", "3"])
     lines = capsys.readouterr().out.splitlines()
     assert lines[1].split() == ["run", "seed", "c=0", "c=0.5"]
     assert [line.split()[:2] for line in lines[2:]] == [["tiny", "1"], ["tiny", "all"]]
     with pytest.raises(SystemExit):
-        bench.main(["--run", f"tiny={tmp_path}", "--scales", "-1"])
+        bench.main(["--run", f"tiny={tiny_maml_run}", "--scales", "-1"])
     assert "--scales: got [-1.0]; expected values >= 0" in capsys.readouterr().err
 
 

@@ -100,31 +100,26 @@ def test_run_cell_writes_rows_with_schedule_and_skips_finished(tmp_path):
     assert (tmp_path / "cell.csv").stat().st_mtime_ns == mtime
 
 
-def test_swept_schedule_picks_the_later_factor_on_the_sweep_tasks(tmp_path):
+def test_swept_schedule_picks_the_later_factor_on_the_sweep_tasks(tiny_maml_run, tmp_path):
     """A ``swept`` cell adapts each sweep-task trial with one factor, keeps the best mean AUC (recorded with the
     scores), and its evaluation is meta_test's with that factor; the Adam lr sweep stays off."""
     import json
 
     import numpy as np
 
-    from recipes import compose
-    from recipes.maml import train
     from umrl.envs.tasks import get_task_family
     from umrl.metatest import load_initialisation, meta_test
     from umrl.metatest.protocol import sweep_tasks
     from umrl.metatest.stats import auc
 
-    train(compose("maml", ["proposal=oracle", "iterations=1", "meta_batch_size=2", "trajectories_per_task=2",
-                           "env.horizon=10", "policy.hidden=[16]", "logger.backend=none", "progress=false",
-                           f"output_dir={tmp_path / 'run'}"]))
     protocol = {"num_steps": 3, "num_trajectories": 3, "horizon": 10, "sgd_schedule": "swept"}
     spec = CellSpec.from_mapping({"method": "oracle", "env": "point_nav", "seed": 2, "num_tasks": 2,
-                                  "checkpoint": str(tmp_path / "run"), "output": str(tmp_path / "cell.csv"),
+                                  "checkpoint": str(tiny_maml_run), "output": str(tmp_path / "cell.csv"),
                                   "protocol": protocol,
                                   "sweep": {"later_factors": [0.01, 4.0], "num_tasks": 2, "num_steps": 3}})
     rows = read_rows([run_cell(spec)])
     info = json.loads((tmp_path / "cell.json").read_text())
-    init = load_initialisation("oracle", "point_nav", tmp_path / "run", seed=2)
+    init = load_initialisation("oracle", "point_nav", tiny_maml_run, seed=2)
     config = AdaptationConfig(**protocol)
     scores = {}
     for factor in (0.01, 4.0):
