@@ -265,6 +265,42 @@ def test_step_size_reproduces_the_suites_update_at_its_own_scale(tiny_maml_run, 
     assert "--scales: got [-1.0]; expected values >= 0" in capsys.readouterr().err
 
 
+def test_step_size_decomposition_rebuilds_both_updates_from_their_pushes(tiny_maml_run, capsys):
+    """θ0·B0 and θ1·B1 are the first and second updates' own action-mean shifts at scale 1 (as scaled_step
+    measures them); the uniform push alone is linear in the push: half the push moves the means half as far."""
+    import numpy as np
+    from script_loading import load_script
+
+    from umrl.envs.tasks import get_task_family
+    from umrl.metatest import AdaptationConfig
+
+    bench = load_script("benchmarks/step_size.py")
+    config = AdaptationConfig(num_steps=2, num_trajectories=3, horizon=10, sgd_schedule="reference")
+    tasks = get_task_family("point_nav").eval_tasks(2)
+    out = bench.decompose(str(tiny_maml_run), env_name="point_nav", tasks=tasks, seed=1, config=config)
+    for step, key in ((1, "θ0·B0"), (2, "θ1·B1")):
+        own = bench.scaled_step(str(tiny_maml_run), step=step, scales=[1.0], env_name="point_nav", tasks=tasks,
+                                seed=1, config=config)["rms_shift"][0]
+        assert out[key] == pytest.approx(own, rel=1e-5)
+    assert all(np.isfinite(v) and v >= 0 for v in out.values())
+    assert out["θ0·B1"] != out["θ1·B1"] and out["θ1·B0"] != out["θ0·B0"]
+
+    adapter, env, lr = bench.make_adapter(str(tiny_maml_run), env_name="point_nav", tasks=tasks, seed=1,
+                                          config=config)
+    batch = adapter.collect()
+    adapter.step(batch)
+    push = bench.mean_push(adapter, adapter.params, batch)
+    small = 1e-2 * push  # small enough for the step to be linear in the push, large against float rounding
+    assert bench.mean_shift(adapter, adapter.params, batch, small / 2, lr) == pytest.approx(
+        bench.mean_shift(adapter, adapter.params, batch, small, lr) / 2, rel=1e-2)
+    env.close()
+
+    bench.main(["--run", f"tiny={tiny_maml_run}", "--decompose", "--seeds", "1", "--num-tasks", "2",
+                "--trajectories", "3"])
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[1].split()[:4] == ["run", "seed", "θ0·B0", "θ1·B1"]
+    assert [line.split()[:2] for line in lines[2:]] == [["tiny", "1"], ["tiny", "mean"]]
+
 def test_action_noise_refuses_a_later_factor_the_protocol_refuses(capsys):
     from script_loading import load_script
 
