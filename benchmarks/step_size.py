@@ -22,11 +22,11 @@ those states whose new action mean lies outside the action bounds [-1, 1] (where
 ``--decompose`` asks instead why the second update moves the action means further than the first at the same
 scale. With ``θ0, B0`` the init and its batch and ``θ1, B1`` the parameters after the first update and their batch,
 ``u_B = ∂loss/∂μ`` is each batch's push on the action means (its advantages, at its own policy), and an update is
-``θ − α J_θ(B)ᵀ u_B``. Printed per run and seed (RMS over tasks; ``|Δμ|`` at scale 1, on ``B``'s states):
+``θ − α J_θ(B)ᵀ u_B``. Printed per run and seed (``|Δμ|`` at scale 1, RMS over ``B``'s valid states of all tasks):
 
 - ``|Δμ| θ·B`` for the four pairs: ``θ0·B0`` is the first update, ``θ1·B1`` the second's μ-part at scale 1;
   swapping the network (``θ1·B0``) or the batch (``θ0·B1``) tells which of the two makes the second one larger;
-- ``|Σu|``: the size of each batch's summed push (the advantages are standardised, σ barely moves);
+- ``|Σu|``: the size of each batch's summed push, RMS over tasks (the advantages are standardised);
 - ``uniform``: the share of ``|Δμ|`` that the push's per-task mean, applied at every state, gives alone;
 - ``response``: that uniform part's ``|Δμ|`` per unit of ``α |Σu|``, how strongly the network moves its means
   on the batch's states when all of them are pushed the same way;
@@ -38,6 +38,7 @@ import argparse
 
 import numpy as np
 import torch
+from tensordict import TensorDictBase
 
 from umrl.checkpoints import load_maml_policy
 from umrl.checkpoints.labels import labelled_path
@@ -59,7 +60,7 @@ def make_adapter(path: str, *, env_name: str, tasks: torch.Tensor, seed: int,
     return TaskAdapter(policy, env, tasks.shape[0], optimizer="sgd", lr=inner_lr, config=config), env, inner_lr
 
 
-def mean_push(adapter: TaskAdapter, params, batch) -> torch.Tensor:
+def mean_push(adapter: TaskAdapter, params: TensorDictBase, batch: TensorDictBase) -> torch.Tensor:
     """``∂loss/∂μ`` ``[T, N, H, A]``: the update's loss (``batch``'s advantages) differentiated in the action means
     ``params`` give; the step's gradient in the parameters is ``J_paramsᵀ`` of it."""
     dist_params = adapter.functional.dist_params(params.detach(), batch)
@@ -69,7 +70,8 @@ def mean_push(adapter: TaskAdapter, params, batch) -> torch.Tensor:
     return torch.autograd.grad(loss, loc)[0]
 
 
-def mean_shift(adapter: TaskAdapter, params, batch, push: torch.Tensor, lr: float) -> float:
+def mean_shift(adapter: TaskAdapter, params: TensorDictBase, batch: TensorDictBase, push: torch.Tensor,
+               lr: float) -> float:
     """RMS ``|Δμ|`` on ``batch``'s valid states of the step ``params − lr · J_paramsᵀ push``."""
     moved = params.detach().clone()
     leaves = [p.requires_grad_() for p in moved.values(True, True) if p.is_floating_point()]
