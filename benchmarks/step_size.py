@@ -52,12 +52,13 @@ from umrl.runtime import seed_everything
 
 
 def make_adapter(path: str, *, env_name: str, tasks: torch.Tensor, seed: int,
-                 config: AdaptationConfig) -> tuple[TaskAdapter, object, float]:
-    """The SGD ``TaskAdapter`` of the init at ``path`` as the suite's MAML cells build it, its env and ``α``."""
+                 config: AdaptationConfig) -> tuple[TaskAdapter, float]:
+    """The SGD ``TaskAdapter`` of the init at ``path`` as the suite's MAML cells build it (its env is
+    ``adapter.env``; close it when done) and ``α``."""
     policy, inner_lr = load_maml_policy(path)
     seed_everything(seed)
     env = make_eval_env(env_name, tasks, config.num_trajectories, seed=seed, horizon=config.horizon)
-    return TaskAdapter(policy, env, tasks.shape[0], optimizer="sgd", lr=inner_lr, config=config), env, inner_lr
+    return TaskAdapter(policy, env, tasks.shape[0], optimizer="sgd", lr=inner_lr, config=config), inner_lr
 
 
 def mean_push(adapter: TaskAdapter, params: TensorDictBase, batch: TensorDictBase) -> torch.Tensor:
@@ -89,7 +90,7 @@ def mean_shift(adapter: TaskAdapter, params: TensorDictBase, batch: TensorDictBa
 def decompose(path: str, *, env_name: str, tasks: torch.Tensor, seed: int,
               config: AdaptationConfig) -> dict[str, float]:
     """The ``--decompose`` figures (module docstring) of the first two updates of the init at ``path``."""
-    adapter, env, inner_lr = make_adapter(path, env_name=env_name, tasks=tasks, seed=seed, config=config)
+    adapter, inner_lr = make_adapter(path, env_name=env_name, tasks=tasks, seed=seed, config=config)
     batches, params = [adapter.collect()], [adapter.params.detach().clone()]
     adapter.step(batches[0])  # writes the first batch's advantages
     params.append(adapter.params.detach().clone())
@@ -112,7 +113,7 @@ def decompose(path: str, *, env_name: str, tasks: torch.Tensor, seed: int,
         out[f"uniform B{j}"] = uniform / out[f"θ{j}·B{j}"]
         out[f"response B{j}"] = uniform / (inner_lr * size)
         out[f"spread B{j}"] = (centred.square().sum() / valid.sum()).sqrt().item()
-    env.close()
+    adapter.env.close()
     return out
 
 
@@ -120,7 +121,7 @@ def scaled_step(path: str, *, step: int, scales: list[float], env_name: str, tas
                 config: AdaptationConfig) -> dict[str, np.ndarray]:
     """Returns ``[S, T]``, RMS ``|Δμ|`` ``[S]`` and out-of-bounds share ``[S]`` of update ``step`` scaled by each
     of the ``S`` scales, for the init at ``path``."""
-    adapter, env, inner_lr = make_adapter(path, env_name=env_name, tasks=tasks, seed=seed, config=config)
+    adapter, inner_lr = make_adapter(path, env_name=env_name, tasks=tasks, seed=seed, config=config)
     for _ in range(step - 1):
         adapter.step(adapter.collect())
     batch = adapter.collect()
@@ -142,12 +143,13 @@ def scaled_step(path: str, *, step: int, scales: list[float], env_name: str, tas
         out["returns"].append(episode_returns(adapter.collect()).mean(-1).numpy())
         out["rms_shift"].append((loc - loc_before).square().sum(-1).mean().sqrt().item())
         out["out_of_bounds"].append((loc.abs() > 1).any(-1).float().mean().item())
-    env.close()
+    adapter.env.close()
     return {key: np.asarray(value) for key, value in out.items()}
 
 
 def print_decomposition(runs: list[tuple[str, str]], seeds: list[int], *, env_name: str, tasks: torch.Tensor,
                         config: AdaptationConfig) -> None:
+    """The ``--decompose`` table: one row per run and seed, then each run's mean over seeds."""
     columns = ["θ0·B0", "θ1·B1", "θ1·B0", "θ0·B1", "|Σu| B0", "|Σu| B1", "uniform B0", "uniform B1",
                "response B0", "response B1", "spread B0", "spread B1"]
     print("first (B0) and second (B1) update at scale 1: RMS |Δμ| of θ − α J_θᵀ u_B on B's states, the summed "

@@ -285,7 +285,7 @@ def test_step_size_decomposition_rebuilds_both_updates_from_their_pushes(tiny_ma
     assert all(np.isfinite(v) and v >= 0 for v in out.values())
     assert out["θ0·B1"] != out["θ1·B1"] and out["θ1·B0"] != out["θ0·B0"]
 
-    adapter, env, lr = bench.make_adapter(str(tiny_maml_run), env_name="point_nav", tasks=tasks, seed=1,
+    adapter, lr = bench.make_adapter(str(tiny_maml_run), env_name="point_nav", tasks=tasks, seed=1,
                                           config=config)
     batch = adapter.collect()
     adapter.step(batch)
@@ -293,13 +293,14 @@ def test_step_size_decomposition_rebuilds_both_updates_from_their_pushes(tiny_ma
     small = 1e-2 * push  # small enough for the step to be linear in the push, large against float rounding
     assert bench.mean_shift(adapter, adapter.params, batch, small / 2, lr) == pytest.approx(
         bench.mean_shift(adapter, adapter.params, batch, small, lr) / 2, rel=1e-2)
-    env.close()
+    adapter.env.close()
 
     bench.main(["--run", f"tiny={tiny_maml_run}", "--decompose", "--seeds", "1", "--num-tasks", "2",
                 "--trajectories", "3"])
     lines = capsys.readouterr().out.splitlines()
     assert lines[1].split()[:4] == ["run", "seed", "θ0·B0", "θ1·B1"]
     assert [line.split()[:2] for line in lines[2:]] == [["tiny", "1"], ["tiny", "mean"]]
+
 
 def test_action_noise_refuses_a_later_factor_the_protocol_refuses(capsys):
     from script_loading import load_script
