@@ -30,7 +30,11 @@ scale. With ``θ0, B0`` the init and its batch and ``θ1, B1`` the parameters af
 - ``uniform``: the share of ``|Δμ|`` that the push's per-task mean, applied at every state, gives alone;
 - ``response``: that uniform part's ``|Δμ|`` per unit of ``α |Σu|``, how strongly the network moves its means
   on the batch's states when all of them are pushed the same way;
-- ``spread``: the RMS distance of the batch's observations from their task's mean observation.
+- ``spread``: the RMS distance of the batch's observations from their task's mean observation;
+- ``last layer``: the ``response`` if the uniform push moved only the last linear layer, whose change of the means
+  is exact: ``Δμ(s) = −α Σu (h̄·h(s) + 1)`` with ``h(s)`` the features that layer reads and ``h̄`` their mean over
+  the task's states (large when the features are large and point the same way);
+- ``|h|``: the RMS norm of those features on the batch's states.
 """
 from __future__ import annotations
 
@@ -91,6 +95,9 @@ def decompose(path: str, *, env_name: str, tasks: torch.Tensor, seed: int,
               config: AdaptationConfig) -> dict[str, float]:
     """The ``--decompose`` figures (module docstring) of the first two updates of the init at ``path``."""
     adapter, inner_lr = make_adapter(path, env_name=env_name, tasks=tasks, seed=seed, config=config)
+    batched = adapter.functional.batched
+    if batched is None:
+        raise ValueError(f"{path}: --decompose needs a plain Gaussian MLP policy (BatchedGaussianMLP recognises it).")
     batches, params = [adapter.collect()], [adapter.params.detach().clone()]
     adapter.step(batches[0])  # writes the first batch's advantages
     params.append(adapter.params.detach().clone())
@@ -113,6 +120,13 @@ def decompose(path: str, *, env_name: str, tasks: torch.Tensor, seed: int,
         out[f"uniform B{j}"] = uniform / out[f"θ{j}·B{j}"]
         out[f"response B{j}"] = uniform / (inner_lr * size)
         out[f"spread B{j}"] = (centred.square().sum() / valid.sum()).sqrt().item()
+        # the uniform push moving the last linear layer alone: Δμ(s) = −α Σu (h̄·h(s) + 1), h̄ the task's mean feature
+        with torch.no_grad():
+            features = batched.features(theta, [batch.get(key) for key in adapter.functional.net.in_keys])
+        mean_feature = (features * valid).sum((1, 2), keepdim=True) / count
+        last = total.norm(dim=-1)[:, None, None] * ((features * mean_feature).sum(-1) + 1)
+        out[f"last layer B{j}"] = (last[batch["mask"]].square().mean().sqrt() / size).item()
+        out[f"|h| B{j}"] = features[batch["mask"]].norm(dim=-1).square().mean().sqrt().item()
     adapter.env.close()
     return out
 
@@ -151,9 +165,11 @@ def print_decomposition(runs: list[tuple[str, str]], seeds: list[int], *, env_na
                         config: AdaptationConfig) -> None:
     """The ``--decompose`` table: one row per run and seed, then each run's mean over seeds."""
     columns = ["θ0·B0", "θ1·B1", "θ1·B0", "θ0·B1", "|Σu| B0", "|Σu| B1", "uniform B0", "uniform B1",
-               "response B0", "response B1", "spread B0", "spread B1"]
+               "response B0", "response B1", "spread B0", "spread B1", "last layer B0", "last layer B1",
+               "|h| B0", "|h| B1"]
     print("first (B0) and second (B1) update at scale 1: RMS |Δμ| of θ − α J_θᵀ u_B on B's states, the summed "
-          "push |Σu|, the uniform push's share of |Δμ|, its |Δμ| per unit α |Σu|, the states' spread", flush=True)
+          "push |Σu|, the uniform push's share of |Δμ|, its |Δμ| per unit α |Σu|, the states' spread, that response "
+          "with only the last layer moved, the RMS feature norm that layer reads", flush=True)
     print(f"{'run':<16}{'seed':>5}" + "".join(f"{c:>12}" for c in columns), flush=True)
     for label, path in runs:
         results = [decompose(path.format(seed=seed), env_name=env_name, tasks=tasks, seed=seed, config=config)

@@ -72,6 +72,19 @@ def test_batched_dist_params_match_the_per_task_loop(in_keys):
         torch.testing.assert_close(batched[key], reference[key], rtol=1e-12, atol=1e-12)
 
 
+def test_features_are_what_the_last_linear_layer_reads():
+    policy = _policy()
+    td = _batch(policy)
+    params = TensorDict.from_module(policy).detach().expand(T).clone().apply(lambda x: x + torch.rand_like(x))
+    batched = BatchedGaussianMLP.from_net(FunctionalPolicy(policy).net)
+    features = batched.features(params, [td["observation"]])
+    assert features.shape == (T, N, H, 5)  # the last hidden width
+    kind, weight_key, bias_key = batched.layers[-1]
+    assert kind == "linear"
+    loc = torch.einsum("tnhi,toi->tnho", features, params.get(weight_key)) + params.get(bias_key)[:, None, None]
+    torch.testing.assert_close(loc, _reference_dist_params(policy, params, td)["loc"], rtol=1e-12, atol=1e-12)
+
+
 def test_batched_maml_step_matches_the_per_task_loop():
     """Adapted params, surrogate, KL, meta-gradient and Gauss-Newton HVP: batched == loop to float tolerance."""
     policy = _policy()

@@ -288,7 +288,26 @@ def test_step_size_decomposition_rebuilds_both_updates_from_their_pushes(tiny_ma
     adapter, lr = bench.make_adapter(str(tiny_maml_run), env_name="point_nav", tasks=tasks, seed=1,
                                           config=config)
     batch = adapter.collect()
-    adapter.step(batch)
+    before = adapter.params.detach().clone()
+    adapter.step(batch)  # writes the batch's advantages
+
+    # "last layer B0": the uniform push of the first batch moving only the last linear layer, done by hand
+    push = bench.mean_push(adapter, before, batch)
+    valid = batch["mask"].unsqueeze(-1).to(push.dtype)
+    total = (push * valid).sum((1, 2))
+    _, weight_key, bias_key = adapter.functional.batched.layers[-1]
+    moved = before.clone()
+    leaves = [moved.get(weight_key).requires_grad_(), moved.get(bias_key).requires_grad_()]
+    loc = adapter.functional.dist_params(moved, batch)["loc"]
+    uniform = total[:, None, None] / valid.sum((1, 2), keepdim=True) * valid
+    gradients = torch.autograd.grad((loc * uniform).sum(), leaves)
+    with torch.no_grad():
+        for leaf, gradient in zip(leaves, gradients, strict=True):
+            leaf.sub_(lr * gradient)
+        shift = (adapter.functional.dist_params(moved, batch)["loc"] - loc)[batch["mask"]]
+    response = shift.square().sum(-1).mean().sqrt() / (lr * total.norm(dim=-1).square().mean().sqrt())
+    assert out["last layer B0"] == pytest.approx(response.item(), rel=1e-4)
+
     push = bench.mean_push(adapter, adapter.params, batch)
     small = 1e-2 * push  # small enough for the step to be linear in the push, large against float rounding
     assert bench.mean_shift(adapter, adapter.params, batch, small / 2, lr) == pytest.approx(

@@ -74,10 +74,31 @@ class BatchedGaussianMLP:
                    mappings(head.scale_mapping), head.scale_lb)
 
     def __call__(self, params: TensorDictBase, inputs: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        h, num_tasks, batch = self._flat_input(inputs)
+        h = self._apply(params, self.layers, h)  # [T, M, act_dim]
+        loc = h.reshape(num_tasks, *batch, h.shape[-1])
+        log_scale = params.get(self.scale_key)  # [T, act_dim]
+        log_scale = log_scale.view(num_tasks, *(1,) * len(batch), log_scale.shape[-1]).expand_as(loc)
+        return loc, self.scale_map(log_scale).clamp_min(self.scale_lb)
+
+    def features(self, params: TensorDictBase, inputs: list[torch.Tensor]) -> torch.Tensor:
+        """What the last linear layer reads: ``[T, *batch, hidden]``, for the same ``params`` and ``inputs`` as a
+        call (``loc`` is that linear layer of these features, computed by the same operations)."""
+        h, num_tasks, batch = self._flat_input(inputs)
+        last = max(i for i, (kind, *_) in enumerate(self.layers) if kind == "linear")
+        h = self._apply(params, self.layers[:last], h)
+        return h.reshape(num_tasks, *batch, h.shape[-1])
+
+    @staticmethod
+    def _flat_input(inputs: list[torch.Tensor]) -> tuple[torch.Tensor, int, torch.Size]:
+        """The inputs concatenated and flattened to ``[T, M, in]``, with ``T`` and the batch dims between."""
         x = inputs[0] if len(inputs) == 1 else torch.cat(inputs, dim=-1)
-        num_tasks, batch = x.shape[0], x.shape[1:-1]
-        h = x.reshape(num_tasks, -1, x.shape[-1])  # [T, M, in]
-        for kind, *spec in self.layers:
+        return x.reshape(x.shape[0], -1, x.shape[-1]), x.shape[0], x.shape[1:-1]
+
+    @staticmethod
+    def _apply(params: TensorDictBase, layers: list, h: torch.Tensor) -> torch.Tensor:
+        """``layers`` on ``h`` ``[T, M, in]``: each linear layer one ``baddbmm`` (``bmm`` without a bias)."""
+        for kind, *spec in layers:
             if kind == "act":
                 h = spec[0](h)
                 continue
@@ -86,7 +107,4 @@ class BatchedGaussianMLP:
                 h = torch.bmm(h, weight.transpose(-1, -2))
             else:
                 h = torch.baddbmm(params.get(spec[1]).unsqueeze(-2), h, weight.transpose(-1, -2))
-        loc = h.reshape(num_tasks, *batch, h.shape[-1])
-        log_scale = params.get(self.scale_key)  # [T, act_dim]
-        log_scale = log_scale.view(num_tasks, *(1,) * len(batch), log_scale.shape[-1]).expand_as(loc)
-        return loc, self.scale_map(log_scale).clamp_min(self.scale_lb)
+        return h
