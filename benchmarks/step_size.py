@@ -34,7 +34,7 @@ scale. With ``θ0, B0`` the init and its batch and ``θ1, B1`` the parameters af
 - ``last layer``: the ``response`` if the uniform push moved only the last linear layer, whose change of the means
   is exact: ``Δμ(s) = −α Σu (h̄·h(s) + 1)`` with ``h(s)`` the features that layer reads and ``h̄`` their mean over
   the task's states (large when the features are large and point the same way);
-- ``|h|``: the RMS norm of those features on the batch's states.
+- ``|h|``, ``|s|``: the RMS norm of those features and of the observations on the batch's states.
 """
 from __future__ import annotations
 
@@ -127,6 +127,7 @@ def decompose(path: str, *, env_name: str, tasks: torch.Tensor, seed: int,
         last = total.norm(dim=-1)[:, None, None] * ((features * mean_feature).sum(-1) + 1)
         out[f"last layer B{j}"] = (last[batch["mask"]].square().mean().sqrt() / size).item()
         out[f"|h| B{j}"] = features[batch["mask"]].norm(dim=-1).square().mean().sqrt().item()
+        out[f"|s| B{j}"] = obs[batch["mask"]].norm(dim=-1).square().mean().sqrt().item()
     adapter.env.close()
     return out
 
@@ -166,17 +167,19 @@ def print_decomposition(runs: list[tuple[str, str]], seeds: list[int], *, env_na
     """The ``--decompose`` table: one row per run and seed, then each run's mean over seeds."""
     columns = ["θ0·B0", "θ1·B1", "θ1·B0", "θ0·B1", "|Σu| B0", "|Σu| B1", "uniform B0", "uniform B1",
                "response B0", "response B1", "spread B0", "spread B1", "last layer B0", "last layer B1",
-               "|h| B0", "|h| B1"]
+               "|h| B0", "|h| B1", "|s| B0", "|s| B1"]
     print("first (B0) and second (B1) update at scale 1: RMS |Δμ| of θ − α J_θᵀ u_B on B's states, the summed "
           "push |Σu|, the uniform push's share of |Δμ|, its |Δμ| per unit α |Σu|, the states' spread, that response "
-          "with only the last layer moved, the RMS feature norm that layer reads", flush=True)
-    print(f"{'run':<16}{'seed':>5}" + "".join(f"{c:>12}" for c in columns), flush=True)
+          "with only the last layer moved, the RMS norms of the features that layer reads and of the observations",
+          flush=True)
+    width = {c: max(12, len(c) + 2) for c in columns}
+    print(f"{'run':<16}{'seed':>5}" + "".join(f"{c:>{width[c]}}" for c in columns), flush=True)
     for label, path in runs:
         results = [decompose(path.format(seed=seed), env_name=env_name, tasks=tasks, seed=seed, config=config)
                    for seed in seeds]
         for seed, values in [*zip(map(str, seeds), results, strict=True),
                              ("mean", {c: np.mean([r[c] for r in results]) for c in columns})]:
-            print(f"{label:<16}{seed:>5}" + "".join(f"{values[c]:>12.3f}" for c in columns), flush=True)
+            print(f"{label:<16}{seed:>5}" + "".join(f"{values[c]:>{width[c]}.3f}" for c in columns), flush=True)
 
 
 def main(argv: list[str] | None = None) -> None:
