@@ -285,8 +285,7 @@ def test_step_size_decomposition_rebuilds_both_updates_from_their_pushes(tiny_ma
     assert all(np.isfinite(v) and v >= 0 for v in out.values())
     assert out["θ0·B1"] != out["θ1·B1"] and out["θ1·B0"] != out["θ0·B0"]
 
-    adapter, lr = bench.make_adapter(str(tiny_maml_run), env_name="point_nav", tasks=tasks, seed=1,
-                                          config=config)
+    adapter, lr = bench.make_adapter(str(tiny_maml_run), env_name="point_nav", tasks=tasks, seed=1, config=config)
     batch = adapter.collect()
     before = adapter.params.detach().clone()
     adapter.step(batch)  # writes the batch's advantages
