@@ -4,6 +4,7 @@
     python benchmarks/meta_iteration.py --preset paper               # point_nav 50 x 40 x 100, 2x300, lr 0.1
     python benchmarks/meta_iteration.py --preset half_cheetah        # 20 x 40 x 100, 2x300
     python benchmarks/meta_iteration.py --preset reference --task-loop batched loop   # variants, interleaved
+    python benchmarks/meta_iteration.py --preset reference --hvp gauss_newton analytic  # autograd vs hand-derived HVP
     python benchmarks/meta_iteration.py --device auto --threads 16 --hvp-fraction 0.1 --repeats 5
     python benchmarks/meta_iteration.py --device cuda --collection eager cudagraphs   # collection replayed from a CUDA graph
 
@@ -19,10 +20,11 @@ The **arithmetic floor** is the learning step's matmul FLOPs (``torch.utils.flop
 untimed warm-up step) divided by the device's matmul rate, measured in the same run (one large ``torch.mm`` at the
 configured thread count before every round of iterations, median); ``learn / floor`` is how far the step is from that
 bound. Each ``--task-loop`` variant (``batched``: one batched matmul per layer for all tasks; ``loop``: a Python loop
-over tasks; ``vmap``) and ``--collection`` variant (``eager``: TorchRL's ``env.rollout``; ``cudagraphs``: the
-recipe's ``cudagraphs=true``, each rollout replayed from a CUDA graph, point_nav on CUDA only) gets its own policy from
-the same seed, so all variants do the same work; their iterations are interleaved and the medians of ``--repeats``
-runs are printed with same-run ratios. ``--metrics`` prints every
+over tasks; ``vmap``), ``--collection`` variant (``eager``: TorchRL's ``env.rollout``; ``cudagraphs``: the recipe's
+``cudagraphs=true``, each rollout replayed from a CUDA graph, point_nav on CUDA only) and ``--hvp`` variant (the
+recipe's ``trpo.hvp``: ``gauss_newton`` by autograd, ``analytic`` the same product by hand, with ``batched`` only)
+gets its own policy from the same seed, so all variants do the same work; their iterations are interleaved and the
+medians of ``--repeats`` runs are printed with same-run ratios. ``--metrics`` prints every
 iteration's TRPO numbers in full precision (same seed, same numbers: compare before/after a change). ``--heap
 release`` runs with glibc's default malloc instead of keeping freed memory (``umrl.heap``); the header line prints
 the process's peak resident memory for the comparison.
@@ -40,7 +42,7 @@ from torch.utils.flop_counter import FlopCounterMode
 from recipes import compose
 from recipes.maml import build, meta_iteration
 from umrl.configs import validate
-from umrl.configs.maml import MAMLConfig
+from umrl.configs.maml import HVP_MODES, MAMLConfig
 from umrl.heap import keep_freed_memory
 from umrl.profiling import matmul_rate
 from umrl.runtime import rng_state, seed_everything, set_rng_state
@@ -89,6 +91,7 @@ def main() -> None:
     parser.add_argument("--hvp-fraction", type=float, default=1.0)
     parser.add_argument("--task-loop", nargs="+", default=["batched"], choices=sorted(TASK_LOOP))
     parser.add_argument("--collection", nargs="+", default=["eager"], choices=["eager", "cudagraphs"])
+    parser.add_argument("--hvp", nargs="+", default=["gauss_newton"], choices=HVP_MODES)
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--repeats", type=int, default=3)
@@ -106,9 +109,12 @@ def main() -> None:
     heap = "kept" if args.heap == "keep" and keep_freed_memory() else "glibc default"
 
     variants = {
-        loop if len(args.collection) == 1 else f"{loop}/{collection}":
-            Variant([*overrides, f"maml.task_loop={TASK_LOOP[loop]}", f"cudagraphs={collection == 'cudagraphs'}"])
-        for loop in args.task_loop for collection in args.collection
+        "/".join([loop] + [part for part, options in ((collection, args.collection), (hvp, args.hvp))
+                           if len(options) > 1]):
+            Variant([*overrides, f"maml.task_loop={TASK_LOOP[loop]}", f"cudagraphs={collection == 'cudagraphs'}",
+                     f"trpo.hvp={hvp}"])
+        for loop in args.task_loop for collection in args.collection for hvp in args.hvp
+        if hvp != "analytic" or loop == "batched"  # the hand-derived product needs the task-batched MLP
     }
     cfg = next(iter(variants.values())).cfg
     device = torch.device(cfg.device)
@@ -147,13 +153,14 @@ def main() -> None:
         collect_s, learn_s = statistics.median(row["collect_s"]), statistics.median(row["learn_s"])
         floor = flops[name] / rate
         first = first or (name, collect_s, learn_s)
+        hvp = variants[name].cfg.trpo.hvp
         print(f"  {name:8s} collect {collect_s:7.2f} s  learn {learn_s:7.2f} s  learn/collect {learn_s / collect_s:5.2f}"
               f"  floor {floor:6.2f} s ({flops[name] / 1e9:,.0f} GFLOP)  learn/floor {learn_s / floor:5.2f}"
               f"  vs {first[0]}: collect {collect_s / first[1]:5.2f}x, learn {learn_s / first[2]:5.2f}x")
         inner, objective, direction, cg, search, trials = (statistics.median(row[k]) for k in (*phases, "backtracks"))
         print(f"  {'':8s} learn = inner {inner:.2f} s + objective {objective:.2f} s + direction {direction:.2f} s "
               f"(gradient and HVP set-up {direction - cg:.2f} s, {cfg.trpo.cg_iters} CG products {cg:.2f} s, "
-              f"{cfg.trpo.hvp} HVP) + line search {search:.2f} s "
+              f"{hvp} HVP) + line search {search:.2f} s "
               f"({trials:.0f} trials)")
 
 

@@ -1,4 +1,5 @@
-"""Task-batched policy evaluation: agrees with a per-task functional_call loop; device plumbing of the MAML step."""
+"""Task-batched policy evaluation: agrees with a per-task functional_call loop; the hand-derived derivatives of the
+ReLU MLP and the MAML HVP built on them agree with autograd; device plumbing of the MAML step."""
 import pytest
 import torch
 from tensordict import TensorDict
@@ -6,7 +7,7 @@ from torch import nn
 from torch.func import functional_call
 
 from umrl.envs import get_task_family, make_task_env
-from umrl.modules.batched_mlp import BatchedGaussianMLP
+from umrl.modules.batched_mlp import BatchedGaussianMLP, ReLUMLPLinearization
 from umrl.modules.policy import make_gaussian_policy
 from umrl.objectives.maml import MAMLLoss
 from umrl.objectives.policy_gradient import compute_advantages
@@ -111,8 +112,102 @@ def test_batched_maml_step_matches_the_per_task_loop():
     torch.testing.assert_close(h_b, h_l, rtol=1e-10, atol=1e-12)
 
 
-def _tiny_maml_step(device: str):
-    """Collect, adapt, collect post-update, one TRPO meta-step (subsampled Gauss-Newton HVP): all on ``device``."""
+def test_relu_mlp_linearization_matches_autograd():
+    """jvp, vjp and the vjp's directional derivative (a loss's HVP, network curvature included) against autograd."""
+    policy = _policy()
+    batched = BatchedGaussianMLP.from_net(FunctionalPolicy(policy).net)
+    assert batched.is_relu_mlp
+    g = torch.Generator().manual_seed(5)
+    params = TensorDict.from_module(policy).detach().expand(T).clone()
+    for value in params.values(True, True):
+        value.add_(0.3 * torch.randn(value.shape, generator=g, dtype=value.dtype)).requires_grad_(True)
+    leaves = [t for pair in batched.linear_params(params) for t in pair]
+    x = torch.randn(T, N * H, OBS, generator=g, dtype=torch.float64)
+    curvature, offset = (torch.rand(T, N * H, ACT, generator=g, dtype=torch.float64) for _ in range(2))
+    direction = [(torch.randn_like(w), torch.randn_like(b)) for w, b in batched.linear_params(params)]
+    flat_direction = [t for pair in direction for t in pair]
+
+    def loss_of(loc):  # a quadratic loss of the output: gradient curvature * loc + offset, Hessian diag(curvature)
+        return (0.5 * curvature * loc * loc + offset * loc).sum()
+
+    loc = batched(params, [x.view(T, N, H, OBS)])[0].reshape(T, N * H, ACT)
+    grads = torch.autograd.grad(loss_of(loc), leaves, create_graph=True)
+    hvp = torch.autograd.grad(grads, leaves, grad_outputs=flat_direction)
+    lin = ReLUMLPLinearization([(w.detach(), b.detach()) for w, b in batched.linear_params(params)], x)
+    torch.testing.assert_close(lin.loc, loc.detach(), rtol=1e-12, atol=1e-12)
+    r_loc, r_inputs = lin.jvp(direction)
+    _, jvp_ref = torch.func.jvp(lambda *p: _apply(p, x), tuple(t.detach() for t in leaves), tuple(flat_direction))
+    torch.testing.assert_close(r_loc, jvp_ref, rtol=1e-12, atol=1e-12)
+    mine, deltas = lin.vjp(curvature * lin.loc + offset)
+    torch.testing.assert_close([t for pair in mine for t in pair], [t.detach() for t in grads], rtol=1e-12,
+                               atol=1e-12)
+    r_grads = lin.rvjp(direction, r_inputs, deltas, curvature * r_loc)
+    torch.testing.assert_close([t for pair in r_grads for t in pair], list(hvp), rtol=1e-12, atol=1e-12)
+    assert all(t.abs().sum() > 0 for t in hvp)
+
+
+def _apply(flat_params, x):
+    """The ReLU MLP's output for its linear layers' (weight, bias) given as one flat tuple."""
+    h = x
+    pairs = list(zip(flat_params[::2], flat_params[1::2]))
+    for i, (w, b) in enumerate(pairs):
+        h = torch.baddbmm(b.unsqueeze(-2), h, w.mT)
+        h = h.relu() if i < len(pairs) - 1 else h
+    return h
+
+
+@pytest.mark.parametrize("first_order", [False, True])
+@pytest.mark.parametrize("in_keys", [("observation",), ("observation", "skill")])
+def test_analytic_gauss_newton_hvp_equals_autograds(first_order, in_keys):
+    """The hand-derived J^T F J product equals the autograd one and the exact KL Hessian through the inner step."""
+    policy = _policy(in_keys, obs=OBS + (2 if len(in_keys) > 1 else 0))
+    loss = MAMLLoss(policy, inner_lr=0.5, first_order=first_order)
+    assert loss.supports_analytic_hvp
+    support, query = _batch(_policy(), seed=1), _batch(_policy(), seed=2)
+    for td in (support, query):
+        td["skill"] = torch.randn(T, N, H, 2, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
+    with torch.no_grad():  # the query's recorded loc/scale from the adapted policy: the KL's minimum at θ
+        query.update(loss.functional_policy.dist_params(loss.adapt(support), query).select("loc", "scale"))
+    leaves = list(loss.params.values(True, True))
+    grad = torch.autograd.grad(loss.hvp_kl(support, query), leaves, create_graph=True)
+    grad = torch.cat([x.reshape(-1) for x in grad])
+    analytic, autograd = loss.analytic_gauss_newton_hvp(support, query), loss.gauss_newton_hvp(support, query)
+    for seed in range(2):
+        v = torch.randn(grad.numel(), generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+        exact = torch.cat([h.reshape(-1) for h in torch.autograd.grad(grad @ v, leaves, retain_graph=True)])
+        torch.testing.assert_close(analytic(v), autograd(v), rtol=1e-10, atol=1e-12)
+        torch.testing.assert_close(analytic(v), exact, rtol=1e-6, atol=1e-9)
+        assert analytic(v).abs().sum() > 0
+
+
+def test_analytic_gauss_newton_hvp_with_a_clamped_scale_and_a_subsample():
+    policy = _policy()
+    with torch.no_grad():
+        policy.module[0].module[1].state_independent_scale[0] = -20.0  # exp(-20) < scale_lb: clamped, no gradient
+    loss = MAMLLoss(policy, inner_lr=0.5)
+    support, query = _batch(policy, seed=1), _batch(policy, seed=2)
+    v = torch.randn(sum(p.numel() for p in loss.params.values(True, True)), dtype=torch.float64,
+                    generator=torch.Generator().manual_seed(0))
+    products = [hvp(support, query, fraction=0.5, generator=torch.Generator().manual_seed(9))(v)
+                for hvp in (loss.analytic_gauss_newton_hvp, loss.gauss_newton_hvp)]
+    torch.testing.assert_close(*products, rtol=1e-10, atol=1e-12)
+
+
+def test_analytic_gauss_newton_hvp_refuses_what_it_cannot_differentiate():
+    policy = _policy()
+    support, query = _batch(policy, seed=1), _batch(policy, seed=2)
+    with pytest.raises(ValueError, match="needs a ReLU MLP Gaussian policy"):
+        MAMLLoss(policy, inner_lr=0.5, task_loop=True).analytic_gauss_newton_hvp(support, query)
+    with pytest.raises(ValueError, match="num_inner_steps=1"):
+        MAMLLoss(policy, inner_lr=0.5, num_inner_steps=2).analytic_gauss_newton_hvp(support, query)
+    tanh = make_gaussian_policy(OBS, ACT, hidden=(4,)).double()
+    tanh.module[0].module[0][1] = nn.Tanh()
+    assert not MAMLLoss(tanh).supports_analytic_hvp
+
+
+def _tiny_maml_step(device: str, hvp: str = "gauss_newton_hvp"):
+    """Collect, adapt, collect post-update, one TRPO meta-step (subsampled Gauss-Newton HVP ``hvp``, a
+    ``MAMLLoss`` method): all on ``device``."""
     torch.manual_seed(0)
     tasks = get_task_family("point_nav").sample(T, torch.Generator().manual_seed(0))
     env = make_task_env("point_nav", tasks.repeat_interleave(N, 0).to(device), horizon=H, device=device)
@@ -126,7 +221,7 @@ def _tiny_maml_step(device: str):
     generator = torch.Generator(device=device).manual_seed(0)
     info = TRPOStep(loss.params, max_kl=0.05)(
         lambda: loss.objective_and_kl(support, query), initial=loss.objective_and_kl(support, query, phi=adapted),
-        hvp=lambda: loss.gauss_newton_hvp(support, query, fraction=0.5, generator=generator))
+        hvp=lambda: getattr(loss, hvp)(support, query, fraction=0.5, generator=generator))
     tensors = [*support.values(True, True), *query.values(True, True), *adapted.values(True, True),
                *out.values(True, True), *policy.parameters()]
     assert {t.device.type for t in tensors} == {torch.device(device).type}
@@ -134,10 +229,12 @@ def _tiny_maml_step(device: str):
     assert any(not torch.equal(p, b) for p, b in zip(policy.parameters(), before))
 
 
-def test_tiny_maml_step_with_explicit_cpu_device():
-    _tiny_maml_step("cpu")
+@pytest.mark.parametrize("hvp", ["gauss_newton_hvp", "analytic_gauss_newton_hvp"])
+def test_tiny_maml_step_with_explicit_cpu_device(hvp):
+    _tiny_maml_step("cpu", hvp)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-def test_tiny_maml_step_on_cuda():
-    _tiny_maml_step("cuda")
+@pytest.mark.parametrize("hvp", ["gauss_newton_hvp", "analytic_gauss_newton_hvp"])
+def test_tiny_maml_step_on_cuda(hvp):
+    _tiny_maml_step("cuda", hvp)

@@ -12,12 +12,12 @@ REPO = Path(__file__).resolve().parents[1]
 def test_meta_iteration_times_the_recipes_step_for_each_variant():
     out = subprocess.run(
         [sys.executable, str(REPO / "benchmarks" / "meta_iteration.py"), "--preset", "reference", "--tasks", "2",
-         "--trajectories", "2", "--repeats", "1", "--task-loop", "batched", "loop"],
+         "--trajectories", "2", "--repeats", "1", "--task-loop", "batched", "loop", "--hvp", "gauss_newton", "analytic"],
         capture_output=True, text=True, timeout=300, check=True, cwd=REPO,
     ).stdout
     assert "reference: point_nav 2 tasks x 2 traj x 100 steps" in out
     table = [line.split() for line in out.splitlines() if "learn/floor" in line]
-    assert [row[0] for row in table] == ["batched", "loop"]
+    assert [row[0] for row in table] == ["batched/gauss_newton", "batched/analytic", "loop/gauss_newton"]
     for row in table:
         learn, floor = float(row[row.index("learn") + 1]), float(row[row.index("floor") + 1])
         ratio = float(row[row.index("learn/floor") + 1])
@@ -26,7 +26,7 @@ def test_meta_iteration_times_the_recipes_step_for_each_variant():
         assert learn > 0 and floor > half
         assert (learn - half) / (floor + half) - half <= ratio <= (learn + half) / (floor - half) + half
     parts = [line.split() for line in out.splitlines() if "learn = inner" in line]
-    assert len(parts) == 2
+    assert len(parts) == 3
     for row, learn_row in zip(parts, table):
         seconds = [float(row[row.index(k) + 1]) for k in ("inner", "objective", "direction", "search")]
         assert all(t >= 0 for t in seconds) and seconds[2] > 0  # ten CG products take time

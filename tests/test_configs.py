@@ -139,7 +139,11 @@ NO_GPU = pytest.mark.skipif(torch.cuda.is_available(), reason="device=cuda is va
     ("suite", ["seeds=[0,-1]"], "seeds[1]: got -1; expected an integer >= 0"),
     # more ranges and choices
     ("maml", ["trpo.hvp_fraction=1.5"], "trpo.hvp_fraction: got 1.5; expected a finite number in (0, 1]"),
-    ("maml", ["trpo.hvp=fisher"], "trpo.hvp: got 'fisher'; expected one of 'gauss_newton', 'exact'"),
+    ("maml", ["trpo.hvp=fisher"], "trpo.hvp: got 'fisher'; expected one of 'gauss_newton', 'analytic', 'exact'"),
+    ("maml", ["maml.num_inner_steps=2"], ("maml.num_inner_steps: got 2; expected 1 with trpo.hvp=gauss_newton (it "
+     "differentiates one inner step; trpo.hvp=exact takes any number)")),
+    ("maml", ["trpo.hvp=analytic", "maml.task_loop=true"], ("maml.task_loop: got True; expected null with "
+     "trpo.hvp=analytic (it differentiates the task-batched MLP; trpo.hvp=gauss_newton takes any)")),
     ("maml", ["policy.hidden=[]"], "policy.hidden: got []; expected a non-empty list of integers >= 1"),
     ("vime", ["env.name=walker"], "env.name: got 'walker'; expected one of 'point_nav', 'half_cheetah', 'ant'"),
     ("vime", ["logger.backend=tensorboard"], ("logger.backend: got 'tensorboard'; expected one of 'wandb', 'csv', "

@@ -38,6 +38,16 @@ def test_two_iterations_per_proposal(tmp_path, proposal, tiny_diayn_checkpoint):
     assert result["train/log_std"] == policy_log_std(policy).mean().item()  # logged after the meta-step
 
 
+def test_analytic_hvp_gives_the_autograd_runs_numbers(tmp_path):
+    """trpo.hvp=analytic computes gauss_newton's product by hand: the same run to float rounding."""
+    runs = {hvp: train(_cfg(tmp_path / hvp, "iterations=2", f"trpo.hvp={hvp}", "maml.inner_lr=0.5",
+                            "policy.hidden=[16,16]")) for hvp in ("gauss_newton", "analytic")}
+    for key in ("train/return_pre", "train/return_post", "train/kl", "train/improvement", "train/step_norm",
+                "train/log_std", "train/backtracks"):
+        assert runs["analytic"][key] == pytest.approx(runs["gauss_newton"][key], rel=1e-4, abs=1e-6), key
+    assert runs["analytic"]["train/step_norm"] > 0
+
+
 def test_resume_continues_from_the_latest_checkpoint(tmp_path):
     train(_cfg(tmp_path, "iterations=1"))
     first = load_maml_checkpoint(tmp_path)

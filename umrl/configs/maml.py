@@ -23,8 +23,9 @@ COMPILE_UNSUPPORTED = (
 )
 """Why ``compile=true`` is refused."""
 
-HVP_MODES = ("gauss_newton", "exact")
-"""``trpo.hvp``: ``gauss_newton`` (J^T F J through the inner step) or ``exact`` (the KL's Hessian)."""
+HVP_MODES = ("gauss_newton", "analytic", "exact")
+"""``trpo.hvp``: ``gauss_newton`` (J^T F J through the inner step, by autograd), ``analytic`` (the same product
+derived by hand for the ReLU MLP policy: equal to float rounding, faster) or ``exact`` (the KL's Hessian)."""
 
 
 @dataclass
@@ -89,8 +90,18 @@ class MAMLConfig(RunConfig):
     def cross_check(cfg: dict) -> list[str]:
         """``proposal=diayn`` needs an existing ``diayn_checkpoint``; CUDA graphs run on a CUDA device (``device`` is
         resolved here; which envs they can record is checked when the env exists, see
-        :func:`umrl.rollout.check_cudagraphs`)."""
+        :func:`umrl.rollout.check_cudagraphs`); ``trpo.hvp`` other than ``exact`` needs one inner step, and
+        ``analytic`` the batched policy (``maml.task_loop=null``)."""
         errors = cudagraphs_errors(cfg["cudagraphs"], cfg["device"], "cudagraphs")
+        hvp = cfg["trpo"]["hvp"]
+        if hvp != "exact" and cfg["maml"]["num_inner_steps"] != 1:
+            errors.append(InvalidValue("maml.num_inner_steps", cfg["maml"]["num_inner_steps"],
+                                       f"1 with trpo.hvp={hvp} (it differentiates one inner step; trpo.hvp=exact "
+                                       "takes any number)").message())
+        if hvp == "analytic" and cfg["maml"]["task_loop"] is not None:
+            errors.append(InvalidValue("maml.task_loop", cfg["maml"]["task_loop"],
+                                       "null with trpo.hvp=analytic (it differentiates the task-batched MLP; "
+                                       "trpo.hvp=gauss_newton takes any)").message())
         if cfg["proposal"] == "diayn":
             try:
                 check_path_exists("diayn_checkpoint", cfg["diayn_checkpoint"])

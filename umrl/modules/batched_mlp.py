@@ -9,10 +9,12 @@ matmul, whose backward and double backward are batched matmuls too.
 :func:`umrl.modules.policy.make_gaussian_policy` builds — ``Sequential(MLP, AddStateIndependentNormalScale)``, the MLP
 made of ``nn.Linear`` and element-wise activations, optionally behind the policy's input concatenation — and returns
 ``None`` for any other network, so callers fall back to ``vmap``.
+
+:class:`ReLUMLPLinearization` differentiates such a network by hand when it is a ReLU MLP: forward tangents,
+gradients and their directional derivatives as batched matmuls over the kept activations, without an autograd graph
+(``MAMLLoss.analytic_gauss_newton_hvp`` builds the KL Hessian-vector product on them).
 """
 from __future__ import annotations
-
-from collections.abc import Callable
 
 import torch
 from tensordict import TensorDictBase
@@ -20,7 +22,7 @@ from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule
 from tensordict.nn.utils import mappings
 from torch import nn
 
-__all__ = ["BatchedGaussianMLP"]
+__all__ = ["BatchedGaussianMLP", "ReLUMLPLinearization"]
 
 _ELEMENTWISE = (nn.ReLU, nn.Tanh, nn.ELU, nn.LeakyReLU, nn.SiLU, nn.GELU, nn.Sigmoid, nn.Softplus, nn.Identity)
 
@@ -34,11 +36,12 @@ class BatchedGaussianMLP:
     each ``[T, *batch, act_dim]``.
     """
 
-    def __init__(self, in_keys: list, layers: list, scale_key: tuple, scale_map: Callable, scale_lb: float):
+    def __init__(self, in_keys: list, layers: list, scale_key: tuple, scale_mapping: str, scale_lb: float):
         self.in_keys = in_keys
         self.layers = layers  # ("linear", weight_key, bias_key | None) or ("act", module)
         self.scale_key = scale_key
-        self.scale_map = scale_map
+        self.scale_mapping = scale_mapping  # e.g. "exp": scale = exp(state_independent_scale), clamped at scale_lb
+        self.scale_map = mappings(scale_mapping)
         self.scale_lb = scale_lb
 
     @classmethod
@@ -71,10 +74,10 @@ class BatchedGaussianMLP:
             else:
                 return None
         return cls(list(mods[0].in_keys), layers, (*prefix, "1", "state_independent_scale"),
-                   mappings(head.scale_mapping), head.scale_lb)
+                   head.scale_mapping, head.scale_lb)
 
     def __call__(self, params: TensorDictBase, inputs: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        h, num_tasks, batch = self._flat_input(inputs)
+        h, num_tasks, batch = self.flat_input(inputs)
         h = self._apply(params, self.layers, h)  # [T, M, act_dim]
         loc = h.reshape(num_tasks, *batch, h.shape[-1])
         log_scale = params.get(self.scale_key)  # [T, act_dim]
@@ -84,13 +87,29 @@ class BatchedGaussianMLP:
     def features(self, params: TensorDictBase, inputs: list[torch.Tensor]) -> torch.Tensor:
         """What the last linear layer reads: ``[T, *batch, hidden]``, for the same ``params`` and ``inputs`` as a
         call (``loc`` is that linear layer of these features, computed by the same operations)."""
-        h, num_tasks, batch = self._flat_input(inputs)
+        h, num_tasks, batch = self.flat_input(inputs)
         last = max(i for i, (kind, *_) in enumerate(self.layers) if kind == "linear")
         h = self._apply(params, self.layers[:last], h)
         return h.reshape(num_tasks, *batch, h.shape[-1])
 
+    @property
+    def is_relu_mlp(self) -> bool:
+        """Linear layers with a ReLU after each but the last, and an ``exp`` scale: what
+        :class:`ReLUMLPLinearization` and ``MAMLLoss.analytic_gauss_newton_hvp`` differentiate by hand."""
+        kinds = [kind if kind == "linear" else type(spec[0]) for kind, *spec in self.layers]
+        return (self.scale_mapping == "exp" and kinds[-1:] == ["linear"]
+                and kinds == ["linear", nn.ReLU] * (len(kinds) // 2) + ["linear"])
+
+    def linear_keys(self) -> list[tuple[tuple, tuple | None]]:
+        """``(weight_key, bias_key | None)`` of each linear layer, in order."""
+        return [(w, b) for _, w, b in (layer for layer in self.layers if layer[0] == "linear")]
+
+    def linear_params(self, params: TensorDictBase) -> list[tuple[torch.Tensor, torch.Tensor | None]]:
+        """``(weight [T, out, in], bias [T, out] | None)`` of each linear layer, in order."""
+        return [(params.get(w), None if b is None else params.get(b)) for w, b in self.linear_keys()]
+
     @staticmethod
-    def _flat_input(inputs: list[torch.Tensor]) -> tuple[torch.Tensor, int, torch.Size]:
+    def flat_input(inputs: list[torch.Tensor]) -> tuple[torch.Tensor, int, torch.Size]:
         """The inputs concatenated and flattened to ``[T, M, in]``, with ``T`` and the batch dims between."""
         x = inputs[0] if len(inputs) == 1 else torch.cat(inputs, dim=-1)
         return x.reshape(x.shape[0], -1, x.shape[-1]), x.shape[0], x.shape[1:-1]
@@ -108,3 +127,73 @@ class BatchedGaussianMLP:
             else:
                 h = torch.baddbmm(params.get(spec[1]).unsqueeze(-2), h, weight.transpose(-1, -2))
         return h
+
+
+class ReLUMLPLinearization:
+    """A ReLU MLP (``BatchedGaussianMLP.is_relu_mlp``) at per-task parameters on fixed inputs, differentiated by hand.
+
+    The forward pass is run once and its layer inputs and ReLU masks kept; then, all tasks in batched matmuls
+    (Pearlmutter's R-operator, no autograd graph):
+
+    - :meth:`jvp`: the output's directional derivative ``Rμ`` for a parameter direction;
+    - :meth:`vjp`: the parameters' gradient for an output gradient ``g`` (plus each layer's ``δ``, for :meth:`rvjp`);
+    - :meth:`rvjp`: the directional derivative of that gradient, given how ``g`` moves (``Rg``): the Hessian-vector
+      product of any loss of the output, network curvature included.
+
+    Shapes: ``x`` ``[T, M, in]``; parameters and directions are lists of ``(weight [T, out, in], bias [T, out] |
+    None)`` per linear layer; the output ``loc`` and its gradients are ``[T, M, out_last]``.
+    """
+
+    def __init__(self, linear_params: list[tuple[torch.Tensor, torch.Tensor | None]], x: torch.Tensor):
+        self.weights = [w for w, _ in linear_params]
+        self.has_bias = [b is not None for _, b in linear_params]
+        self.inputs = [x]  # the input of each linear layer
+        self.masks = []  # ReLU derivative after each hidden layer (1 where its input > 0, as torch's ReLU backward)
+        h = x
+        for i, (w, b) in enumerate(linear_params):
+            z = torch.bmm(h, w.mT) if b is None else torch.baddbmm(b.unsqueeze(-2), h, w.mT)
+            if i == len(linear_params) - 1:
+                self.loc = z
+            else:
+                self.masks.append((z > 0).to(z.dtype))
+                h = z.clamp_min_(0)
+                self.inputs.append(h)
+
+    def jvp(self, direction: list) -> tuple[torch.Tensor, list]:
+        """``(Rμ, Rh)``: the output's derivative along ``direction`` and each linear layer's input's (``None`` for
+        the first, which does not move)."""
+        r_inputs, r = [None], None
+        for i, (w, (v, c)) in enumerate(zip(self.weights, direction)):
+            rz = torch.bmm(self.inputs[i], v.mT)
+            if c is not None:
+                rz.add_(c.unsqueeze(-2))
+            if r is not None:
+                rz.baddbmm_(r, w.mT)
+            if i < len(self.weights) - 1:
+                r = rz.mul_(self.masks[i])
+                r_inputs.append(r)
+        return rz, r_inputs
+
+    def vjp(self, grad_loc: torch.Tensor) -> tuple[list, list]:
+        """``(grads, deltas)``: each linear layer's ``(weight, bias)`` gradient for the output gradient
+        ``grad_loc``, and the gradient ``δ`` at each linear layer's output."""
+        grads, deltas, delta = [None] * len(self.weights), [None] * len(self.weights), grad_loc
+        for i in reversed(range(len(self.weights))):
+            deltas[i] = delta
+            grads[i] = (torch.bmm(delta.mT, self.inputs[i]), delta.sum(-2) if self.has_bias[i] else None)
+            if i > 0:
+                delta = torch.bmm(delta, self.weights[i]).mul_(self.masks[i - 1])
+        return grads, deltas
+
+    def rvjp(self, direction: list, r_inputs: list, deltas: list, r_grad_loc: torch.Tensor) -> list:
+        """The derivative along ``direction`` of :meth:`vjp`'s ``grads``, where the output gradient moves by
+        ``r_grad_loc`` (``r_inputs``: :meth:`jvp`'s; ``deltas``: :meth:`vjp`'s)."""
+        grads, r = [None] * len(self.weights), r_grad_loc
+        for i in reversed(range(len(self.weights))):
+            gw = torch.bmm(r.mT, self.inputs[i])
+            if r_inputs[i] is not None:
+                gw.baddbmm_(deltas[i].mT, r_inputs[i])
+            grads[i] = (gw, r.sum(-2) if self.has_bias[i] else None)
+            if i > 0:
+                r = torch.bmm(r, self.weights[i]).baddbmm_(deltas[i], direction[i][0]).mul_(self.masks[i - 1])
+        return grads
