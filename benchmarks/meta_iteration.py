@@ -16,7 +16,7 @@ adaptation + TRPO step). A second line splits "learn" into the recipe's ``time/`
 surrogate and KL through it, the search direction (the gradient with the Hessian-vector product set-up, and the
 conjugate-gradient products) and the line search, with the median number of trials.
 
-The **arithmetic floor** is the learning step's matmul FLOPs (``torch.utils.flop_counter.FlopCounterMode`` over one
+The **arithmetic floor** is the learning step's matmul FLOPs (``umrl.profiling.flop_counter`` over one
 untimed warm-up step) divided by the device's matmul rate, measured in the same run (one large ``torch.mm`` at the
 configured thread count before every round of iterations, median); ``learn / floor`` is how far the step is from that
 bound. Each ``--task-loop`` variant (``batched``: one batched matmul per layer for all tasks; ``loop``: a Python loop
@@ -44,7 +44,7 @@ from recipes.maml import build, meta_iteration
 from umrl.configs import validate
 from umrl.configs.maml import HVP_MODES, MAMLConfig
 from umrl.heap import keep_freed_memory
-from umrl.profiling import matmul_rate
+from umrl.profiling import flop_counter, matmul_rate
 from umrl.runtime import rng_state, seed_everything, set_rng_state
 
 PRESETS = {  # recipe overrides (env.horizon stays the recipe's 100)
@@ -73,7 +73,7 @@ class Variant:
         appended to it (their sum is the step's FLOPs)."""
 
         def counter() -> FlopCounterMode:
-            counters.append(FlopCounterMode(display=False))
+            counters.append(flop_counter())
             return counters[-1]
 
         set_rng_state(self.rng)

@@ -1,13 +1,30 @@
 """Timing on any device (the recipes' ``time/`` metrics, TRPO's phases, the benchmarks): a clock that waits for
-queued device work, and the matmul rate that turns a FLOP count into an arithmetic floor."""
+queued device work, the matmul rate that turns a FLOP count into an arithmetic floor, and the FLOP counter."""
 from __future__ import annotations
 
 import time
 
 import torch
 from torch.utils.benchmark import Timer
+from torch.utils.flop_counter import FlopCounterMode, bmm_flop, mm_flop
 
-__all__ = ["device_clock", "matmul_rate"]
+__all__ = ["device_clock", "flop_counter", "matmul_rate"]
+
+
+def _accumulated_bmm_flop(self_shape, a_shape, b_shape, *args, **kwargs) -> int:
+    return bmm_flop(a_shape, b_shape)
+
+
+def _accumulated_mm_flop(self_shape, a_shape, b_shape, *args, **kwargs) -> int:
+    return mm_flop(a_shape, b_shape)
+
+
+def flop_counter() -> FlopCounterMode:
+    """A silent ``FlopCounterMode`` that also counts the in-place matmuls (``baddbmm_``, ``addmm_``), which torch's
+    own table leaves out."""
+    aten = torch.ops.aten
+    return FlopCounterMode(display=False, custom_mapping={aten.baddbmm_: _accumulated_bmm_flop,
+                                                          aten.addmm_: _accumulated_mm_flop})
 
 
 def device_clock(device: torch.device) -> float:

@@ -164,9 +164,8 @@ class ReLUMLPLinearization:
         the first, which does not move)."""
         r_inputs, r = [None], None
         for i, (w, (v, c)) in enumerate(zip(self.weights, direction)):
-            rz = torch.bmm(self.inputs[i], v.mT)
-            if c is not None:
-                rz.add_(c.unsqueeze(-2))
+            x = self.inputs[i]
+            rz = torch.bmm(x, v.mT) if c is None else torch.baddbmm(c.unsqueeze(-2), x, v.mT)
             if r is not None:
                 rz.baddbmm_(r, w.mT)
             if i < len(self.weights) - 1:
