@@ -313,7 +313,8 @@ class MAMLLoss(LossModule):
             grads, deltas = inner.vjp(grad_loc)
             grad_log_std = (clamp * c * (1 - residual.pow(2) * inv_var)).sum(-2)
             curv_log_std = 2 * (clamp * c * residual.pow(2) * inv_var).sum(-2)  # ∂²L/∂(log σ)² [T, act]
-            # φ = θ - α ∇L, and the query's KL at φ: F_t = weights q_i = w_i / (W_t T) on 1/σ² (mean), 2 (log σ).
+            # φ = θ - α ∇L; the query's KL Hessian at φ is q_i / σ² in each step's mean and 2 Σ_i q_i in the
+            # log-std, with q_i = w_i / (W_t T) (mean over a task's valid steps, then over tasks).
             phi = [(wt - self.inner_lr * gw, None if b is None else b - self.inner_lr * gb)
                    for (wt, b), (gw, gb) in zip(net.linear_params(theta_t), grads)]
             x_q, w_q = samples(query)
@@ -324,8 +325,8 @@ class MAMLLoss(LossModule):
 
         def split(vectors: list[torch.Tensor]) -> tuple[list, torch.Tensor]:  # [T, ...] parts -> layers, log-std
             by_key = dict(zip(flat_keys, vectors))
-            return [(by_key[wk], None if bk is None else by_key[bk]) for wk, bk in net.linear_keys()], by_key[
-                net.scale_key]
+            layers = [(by_key[wk], None if bk is None else by_key[bk]) for wk, bk in net.linear_keys()]
+            return layers, by_key[net.scale_key]
 
         def join(layers: list, log_std_part: torch.Tensor) -> list[torch.Tensor]:
             by_key = {net.scale_key: log_std_part}
