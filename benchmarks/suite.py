@@ -57,6 +57,7 @@ from omegaconf import DictConfig, OmegaConf
 
 import recipes
 from umrl.configs import ConfigError, validate
+from umrl.configs.maml import hvp_errors
 from umrl.configs.suite import RECIPE_SCHEMAS, SuiteConfig, needed_pretraining, pretrain_seeds, reuse_dir
 from umrl.configs.validate import check_partial
 from umrl.launch import Job, make_launcher, run_jobs
@@ -207,6 +208,8 @@ def plan_pretraining(cfg: DictConfig, group: str, code: str) -> dict[tuple[str, 
                     continue
                 values = to_container(composed)
                 problems = check_partial(values, RECIPE_SCHEMAS[run.recipe], prefix=f"{name}: ")
+                if run.recipe == "maml" and not problems:
+                    problems = [f"{name}: {error}" for error in hvp_errors(values)]
                 budget = OmegaConf.select(composed, BUDGET_KEYS[run.recipe])
                 if budget is None:
                     problems.append(f"{name}: the recipe config has no {BUDGET_KEYS[run.recipe]!r} (its budget); "

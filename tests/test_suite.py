@@ -51,6 +51,14 @@ def test_plan_dependencies_and_shared_pretraining(tmp_path):
     assert "resume=true" in suite.plan_pretraining(cfg, "g", "code")["diayn", "point_nav", 0].overrides
 
 
+def test_a_maml_override_the_inner_step_cannot_take_fails_before_any_run(tmp_path):
+    cfg = _cfg(tmp_path, "seeds=[0]", "methods=[uml_random]", "+pretrain.maml.overrides.trpo.hvp=analytic",
+               "+pretrain.maml.overrides.maml.task_loop=true")
+    with pytest.raises(ConfigError, match=r"pretrain.maml \(maml_random, point_nav, seed 0\): maml.task_loop: got True; "
+                                          "expected null with trpo.hvp=analytic"):
+        suite.plan_pretraining(cfg, "g", "code")
+
+
 def test_every_pretraining_run_gets_the_launchers_thread_count(tmp_path):
     cfg = _cfg(tmp_path, "seeds=[0]", "methods=[uml_diayn,vime_init]", "launcher.threads=3")
     runs = suite.plan_pretraining(cfg, "g", "code")

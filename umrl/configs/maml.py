@@ -3,6 +3,7 @@
 # ruff: noqa: RUF009  (the field helpers of umrl.configs.validate return dataclasses.field(...) objects)
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 from umrl.configs.common import (
@@ -60,6 +61,22 @@ class MetaTRPOConfig(TRPOConfig):
     hvp_fraction: float = number(gt=0, le=1)
 
 
+def hvp_errors(cfg: Mapping) -> list[str]:
+    """``trpo.hvp`` against the inner step it differentiates (a composed MAML config, also checked by the suite before
+    its pre-training runs start): a Gauss–Newton product needs one inner step, ``analytic`` also the task-batched
+    MLP (``maml.task_loop=null``)."""
+    errors, hvp, inner = [], cfg["trpo"]["hvp"], cfg["maml"]
+    if hvp != "exact" and inner["num_inner_steps"] != 1:
+        errors.append(InvalidValue("maml.num_inner_steps", inner["num_inner_steps"],
+                                   f"1 with trpo.hvp={hvp} (it differentiates one inner step; trpo.hvp=exact "
+                                   "takes any number)").message())
+    if hvp == "analytic" and inner["task_loop"] is not None:
+        errors.append(InvalidValue("maml.task_loop", inner["task_loop"],
+                                   "null with trpo.hvp=analytic (it differentiates the task-batched MLP; "
+                                   "trpo.hvp=gauss_newton takes any)").message())
+    return errors
+
+
 def _compile_off(name: str, value) -> bool:
     """``compile`` must be false (a field check, so a suite's ``pretrain.maml.overrides`` is refused at start too)."""
     if check_bool(name, value):
@@ -93,15 +110,7 @@ class MAMLConfig(RunConfig):
         :func:`umrl.rollout.check_cudagraphs`); ``trpo.hvp`` other than ``exact`` needs one inner step, and
         ``analytic`` the batched policy (``maml.task_loop=null``)."""
         errors = cudagraphs_errors(cfg["cudagraphs"], cfg["device"], "cudagraphs")
-        hvp = cfg["trpo"]["hvp"]
-        if hvp != "exact" and cfg["maml"]["num_inner_steps"] != 1:
-            errors.append(InvalidValue("maml.num_inner_steps", cfg["maml"]["num_inner_steps"],
-                                       f"1 with trpo.hvp={hvp} (it differentiates one inner step; trpo.hvp=exact "
-                                       "takes any number)").message())
-        if hvp == "analytic" and cfg["maml"]["task_loop"] is not None:
-            errors.append(InvalidValue("maml.task_loop", cfg["maml"]["task_loop"],
-                                       "null with trpo.hvp=analytic (it differentiates the task-batched MLP; "
-                                       "trpo.hvp=gauss_newton takes any)").message())
+        errors += hvp_errors(cfg)
         if cfg["proposal"] == "diayn":
             try:
                 check_path_exists("diayn_checkpoint", cfg["diayn_checkpoint"])
