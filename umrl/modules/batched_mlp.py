@@ -97,8 +97,7 @@ class BatchedGaussianMLP:
         """Linear layers with a ReLU after each but the last, and an ``exp`` scale: what
         :class:`ReLUMLPLinearization` and ``MAMLLoss.analytic_gauss_newton_hvp`` differentiate by hand."""
         kinds = [kind if kind == "linear" else type(spec[0]) for kind, *spec in self.layers]
-        return (self.scale_mapping == "exp" and kinds[-1:] == ["linear"]
-                and kinds == ["linear", nn.ReLU] * (len(kinds) // 2) + ["linear"])
+        return self.scale_mapping == "exp" and kinds == ["linear", nn.ReLU] * (len(kinds) // 2) + ["linear"]
 
     def linear_keys(self) -> list[tuple[tuple, tuple | None]]:
         """``(weight_key, bias_key | None)`` of each linear layer, in order."""
