@@ -24,8 +24,10 @@ Rows, per env and batch size ``B`` (policy = the 2x300 Gaussian MLP of :mod:`umr
 ``--scaling`` prints a thread-scaling table instead, for half_cheetah and ant at ``B = --scaling-batch`` (800): at
 1, 2, 4, 8, 16 threads (up to the usable CPUs, or the ``--threads-list``) the physics limit (``mujoco.rollout`` open
 loop on that many threads), the batched backend alone (random actions) and with the 2x300 policy (``env.rollout``:
-torch on one thread beside the physics, as umrl collects, see :mod:`umrl.envs.threads`; and, last column, torch on
-the same number of threads as the physics), and their ratios to the limit; next to them the bounds the policy's own
+torch on one thread beside the physics, as umrl collects, see :mod:`umrl.envs.threads`; and torch on the same number
+of threads as the physics), a candidate collector that is not umrl's ("2 shards": two half batches, one stepping on
+a worker thread while the policy samples the other's actions), and their ratios to the limit; next to them the
+bounds the policy's own
 cost sets: the policy alone (sample for ``B`` observations, torch on one thread) takes ``t_p`` per step against the
 limit's ``t_L``, so collecting with policy and physics one after the other (as umrl does) reaches at most
 ``t_L / (t_L + t_p)`` of the limit ("serial bound"), and with the policy's work perfectly overlapped with the physics
@@ -47,6 +49,7 @@ import sys
 import time
 import warnings
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import gymnasium
 import mujoco
@@ -56,7 +59,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.collectors import Collector
 from torchrl.envs import StepCounter, TransformedEnv
-from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from umrl.envs import ENV_NAMES, make_env
 from umrl.envs.mujoco_batched import BATCHED_ENVS, MODEL_SPECS
@@ -350,6 +353,33 @@ def _batched(name: str, batch: int, steps: int, threads: int, policy_threads: st
     return setup
 
 
+def _two_shards(name: str, batch: int, steps: int, threads: int):
+    """A candidate collector, not umrl's: two envs of ``batch / 2`` copies on ``threads`` physics threads each, one
+    shard's ``env.step`` on a worker thread (MuJoCo releases the GIL) while the main thread samples the other shard's
+    actions, torch on one thread. It measures how much of the policy's cost overlapping hides ("overlap bound")."""
+
+    def setup():
+        envs = [BATCHED_ENVS[name](batch // 2, seed=i, num_threads=threads) for i in range(2)]
+        policy, worker = _policy(envs[0]), ThreadPoolExecutor(1)
+
+        def run() -> int:
+            torch.set_num_threads(threads)
+            with torch_threads_beside_physics(envs[0]):
+                tds = [policy(env.reset()) for env in envs]
+                stepping = worker.submit(envs[0].step, tds[0])
+                for t in range(steps):
+                    for i in (0, 1):  # shard i's step ends; shard 1 - i steps while shard i's actions are sampled
+                        stepped = stepping.result()
+                        if i == 0 or t + 1 < steps:
+                            stepping = worker.submit(envs[1 - i].step, tds[1 - i])
+                        tds[i] = policy(step_mdp(stepped))
+            return 2 * (batch // 2) * steps
+
+        return run
+
+    return setup
+
+
 def _policy_only(name: str, batch: int, steps: int):
     """The 2x300 policy sampling actions for ``batch`` observations of ``name``, ``steps`` times, torch on one thread."""
 
@@ -382,6 +412,7 @@ def scaling_table(args, repeats: int) -> str:
                 (name, t, "alone", False, _batched(name, batch, steps, t, None)),
                 (name, t, "policy", False, _batched(name, batch, steps, t, "umrl")),
                 (name, t, "policy, torch all", False, _batched(name, batch, steps, t, "all")),
+                (name, t, "two shards", False, _two_shards(name, batch, steps, t)),
                 (name, t, "policy only", False, _policy_only(name, batch, steps)),
             ]
 
@@ -392,17 +423,20 @@ def scaling_table(args, repeats: int) -> str:
             f"thread scaling, B={batch}, env steps/s (medians of {done} interleaved repeats"
             + ("" if done == repeats else f", {repeats - done} to go") + ")",
             f"{'env':<13}{'threads':>8}{'mujoco.rollout limit':>22}{'batched alone':>15}{'batched + policy':>18}"
-            + f"{'alone/limit':>13}{'policy/limit':>14}{'torch all thr/limit':>21}{'serial bound':>14}"
+            + f"{'alone/limit':>13}{'policy/limit':>14}{'torch all thr/limit':>21}{'2 shards/limit':>16}"
+            + f"{'serial bound':>14}"
             + f"{'overlap bound':>15}",
         ]
         for name, t in dict.fromkeys((e, t) for e, t, *_ in benches):
-            limit, alone, policy, policy_all, policy_only = (
-                med[(name, t, k)] for k in ("limit", "alone", "policy", "policy, torch all", "policy only")
+            limit, alone, policy, policy_all, shards, policy_only = (
+                med[(name, t, k)]
+                for k in ("limit", "alone", "policy", "policy, torch all", "two shards", "policy only")
             )
             t_limit, t_policy = 1 / limit, 1 / policy_only  # seconds per env step of each, same batch
             lines.append(
                 f"{name:<13}{t:>8}{limit:>22,.0f}{alone:>15,.0f}{policy:>18,.0f}{alone / limit:>13.2f}"
-                f"{policy / limit:>14.2f}{policy_all / limit:>21.2f}{t_limit / (t_limit + t_policy):>14.2f}"
+                f"{policy / limit:>14.2f}{policy_all / limit:>21.2f}{shards / limit:>16.2f}"
+                f"{t_limit / (t_limit + t_policy):>14.2f}"
                 f"{t_limit / (t_limit + t_policy / t):>15.2f}"
             )
         return "\n".join(lines)

@@ -158,6 +158,7 @@ def test_throughput_scaling_prints_the_table_after_every_repeat(capsys):
     for table in (printed, final):
         rows = [line.split() for line in table.splitlines() if line.startswith(("half_cheetah", "ant"))]
         assert [(row[0], row[1]) for row in rows] == [("half_cheetah", "1"), ("ant", "1")]
+        assert "2 shards/limit" in table and all(len(row) == 11 for row in rows)
         assert all(float(x.replace(",", "")) > 0 for row in rows for x in row[2:])
         for row in rows:  # the policy's cost bounds the ratio: serial <= overlapped <= 1 (here on 1 thread: equal)
             serial, overlap = float(row[-2]), float(row[-1])
