@@ -356,7 +356,9 @@ def _batched(name: str, batch: int, steps: int, threads: int, policy_threads: st
 def _two_shards(name: str, batch: int, steps: int, threads: int):
     """A candidate collector, not umrl's: two envs of ``batch / 2`` copies on ``threads`` physics threads each, one
     shard's ``env.step`` on a worker thread (MuJoCo releases the GIL) while the main thread samples the other shard's
-    actions, torch on one thread. It measures how much of the policy's cost overlapping hides ("overlap bound")."""
+    actions, torch on one thread. It measures how much of the policy's cost overlapping hides ("overlap bound").
+    (TorchRL's ``AsyncEnvPool(backend="threading")`` would be the pool, but in torchrl 0.14.1 its per-env send
+    fails for envs with a batch size of their own.)"""
 
     def setup():
         envs = [BATCHED_ENVS[name](batch // 2, seed=i, num_threads=threads) for i in range(2)]
@@ -368,11 +370,13 @@ def _two_shards(name: str, batch: int, steps: int, threads: int):
                 tds = [policy(env.reset()) for env in envs]
                 stepping = worker.submit(envs[0].step, tds[0])
                 for t in range(steps):
+                    last = t + 1 == steps
                     for i in (0, 1):  # shard i's step ends; shard 1 - i steps while shard i's actions are sampled
                         stepped = stepping.result()
-                        if i == 0 or t + 1 < steps:
+                        if i == 0 or not last:
                             stepping = worker.submit(envs[1 - i].step, tds[1 - i])
-                        tds[i] = policy(step_mdp(stepped))
+                        if not last:  # as env.rollout: one policy call per step
+                            tds[i] = policy(step_mdp(stepped))
             return 2 * (batch // 2) * steps
 
         return run
