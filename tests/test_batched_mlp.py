@@ -146,6 +146,26 @@ def test_relu_mlp_linearization_matches_autograd():
     assert all(t.abs().sum() > 0 for t in hvp)
 
 
+
+@pytest.mark.parametrize("width_in, width_out", [(7, 2), (2, 7), (5, 5)])
+def test_linearization_products_in_either_orientation(width_in, width_out):
+    """_affine and _sample_sum give the plain products whether they compute a narrow output transposed or not."""
+    g = torch.Generator().manual_seed(2)
+    t, m = 3, 11
+    xs = [torch.randn(t, m, width_in, generator=g, dtype=torch.float64) for _ in range(2)]
+    ws = [torch.randn(t, width_out, width_in, generator=g, dtype=torch.float64) for _ in range(2)]
+    bias = torch.randn(t, width_out, generator=g, dtype=torch.float64)
+    plain = sum(torch.einsum("tmi,toi->tmo", x, w) for x, w in zip(xs, ws))
+    for b, expected in ((None, plain), (bias, plain + bias[:, None])):
+        out = ReLUMLPLinearization._affine(list(zip(xs, ws)), b)
+        assert out.shape == (t, m, width_out)
+        torch.testing.assert_close(out, expected, rtol=1e-12, atol=1e-12)
+    deltas = [torch.randn(t, m, width_out, generator=g, dtype=torch.float64) for _ in range(2)]
+    out = ReLUMLPLinearization._sample_sum(list(zip(deltas, xs)))
+    assert out.shape == (t, width_out, width_in)
+    expected = sum(torch.einsum("tmo,tmi->toi", d, x) for d, x in zip(deltas, xs))
+    torch.testing.assert_close(out, expected, rtol=1e-12, atol=1e-12)
+
 def _apply(flat_params, x):
     """The ReLU MLP's output for its linear layers' (weight, bias) given as one flat tuple."""
     h = x
