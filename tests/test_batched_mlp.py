@@ -146,7 +146,6 @@ def test_relu_mlp_linearization_matches_autograd():
     assert all(t.abs().sum() > 0 for t in hvp)
 
 
-
 @pytest.mark.parametrize("width_in, width_out", [(7, 2), (2, 7), (5, 5)])
 def test_linearization_products_in_either_orientation(width_in, width_out):
     """_affine and _sample_sum give the plain products whether they compute a narrow output transposed or not."""
@@ -165,6 +164,7 @@ def test_linearization_products_in_either_orientation(width_in, width_out):
     assert out.shape == (t, width_out, width_in)
     expected = sum(torch.einsum("tmo,tmi->toi", d, x) for d, x in zip(deltas, xs))
     torch.testing.assert_close(out, expected, rtol=1e-12, atol=1e-12)
+
 
 def _apply(flat_params, x):
     """The ReLU MLP's output for its linear layers' (weight, bias) given as one flat tuple."""
