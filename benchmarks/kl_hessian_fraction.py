@@ -37,9 +37,10 @@ from umrl.checkpoints import load_maml_checkpoint
 from umrl.checkpoints.labels import labelled_path
 from umrl.configs import validate
 from umrl.configs.maml import MAMLConfig
-from umrl.heap import keep_freed_memory
 from umrl.modules import policy_log_std
 from umrl.objectives.maml import gaussian_kl
+from umrl.objectives.maml_hvp import make_meta_hvp
+from umrl.process import tune_process
 from umrl.runtime import seed_everything
 
 BATCH_SEED_OFFSET = 1000  # the batch's streams differ from the recipe's (seed_everything(seed)) but not between runs
@@ -87,7 +88,8 @@ def compare_steps(path: str, *, from_init: bool, seed: int, fractions: list[floa
                 with torch.enable_grad():
                     adapted = loss.adapt(support)
             cfg.trpo.hvp_fraction = fraction
-            info = meta_step(cfg, loss, trpo, support, query, adapted, torch.Generator().manual_seed(draw))
+            trpo.hvp = make_meta_hvp(cfg.trpo.hvp, loss, fraction=fraction, generator=torch.Generator().manual_seed(draw))
+            info = meta_step(cfg, loss, trpo, support, query, adapted)
             diffs = [p.detach() - p0 for p, p0 in zip(params, start)]
             step = torch.cat([d.reshape(-1) for d in diffs])
             reference = step if reference is None else reference
@@ -120,7 +122,7 @@ def main(argv: list[str] | None = None) -> None:
     bad = [f for f in args.fractions if not 0 < f <= 1]
     if bad:
         parser.error(f"--fractions: got {bad}; expected values in (0, 1]")
-    keep_freed_memory()
+    tune_process()
     summary = {}
     print("run | seed | fraction | draw | accepted | trials (KL over / no improvement) | KL | improvement | "
           "log σ before | Δ log σ | KL(σ) / max_kl | ‖Δ mean net‖ | cos vs first")

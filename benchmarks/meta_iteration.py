@@ -43,7 +43,7 @@ from recipes import compose
 from recipes.maml import build, meta_iteration
 from umrl.configs import validate
 from umrl.configs.maml import HVP_MODES, MAMLConfig
-from umrl.heap import keep_freed_memory
+from umrl.process import tune_process
 from umrl.profiling import flop_counter, matmul_rate
 from umrl.runtime import rng_state, seed_everything, set_rng_state
 
@@ -65,7 +65,7 @@ class Variant:
     def __init__(self, overrides: list[str]):
         self.cfg = validate(compose("maml", overrides), MAMLConfig)
         self.generator = seed_everything(self.cfg.seed)  # as the recipe: same init, tasks and data for every variant
-        self.proposal, self.policy, self.loss, self.trpo = build(self.cfg)
+        self.proposal, self.policy, self.loss, self.trpo = build(self.cfg, self.generator)
         self.rng = rng_state()
 
     def iteration(self, counters: list[FlopCounterMode] | None = None) -> dict[str, float]:
@@ -99,14 +99,14 @@ def main() -> None:
     parser.add_argument("--metrics", action="store_true", help="print each iteration's TRPO numbers in full")
     parser.add_argument("--heap", default="keep", choices=["keep", "release"],
                         help="keep: freed memory stays in the process for reuse, as the recipes run "
-                             "(umrl.heap.keep_freed_memory); release: glibc's default")
+                             "(umrl.heap.keep_freed_memory, via umrl.process.tune_process); release: glibc's default")
     args = parser.parse_args()
     overrides = [*PRESETS[args.preset], "proposal=oracle", "logger.backend=none", f"seed={args.seed}",
                  f"device={args.device}", f"num_threads={args.threads}", f"trpo.hvp_fraction={args.hvp_fraction}"]
     overrides += [f"meta_batch_size={args.tasks}"] * (args.tasks is not None)
     overrides += [f"trajectories_per_task={args.trajectories}"] * (args.trajectories is not None)
     torch.set_num_threads(args.threads)
-    heap = "kept" if args.heap == "keep" and keep_freed_memory() else "glibc default"
+    heap = "kept" if tune_process(keep_freed_memory=args.heap == "keep")["kept_freed_memory"] else "glibc default"
 
     variants = {
         "/".join([loop] + [part for part, options in ((collection, args.collection), (hvp, args.hvp))

@@ -88,7 +88,7 @@ def test_meta_gradient_reaches_every_parameter(task_loop):
     support = _batch(policy, seed=3, dtype=torch.float32)
     with torch.no_grad():
         query = _batch(policy, loss_module.adapt(support), seed=4, dtype=torch.float32)
-    out = loss_module(support, query)
+    out = loss_module(loss_module.pack(support, query))
     assert set(out.keys()) >= {"loss_objective", "kl", "inner_loss", "return_pre", "return_post"}
     assert not out["kl"].requires_grad and out["kl"].abs() < 1e-5
     out["loss_objective"].backward()

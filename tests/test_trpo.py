@@ -5,6 +5,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
+from umrl.optim.hvp import KLHessian
 from umrl.optim.trpo import TRPOStep, conjugate_gradient
 
 
@@ -68,7 +69,7 @@ def test_line_search_accepts_improving_step_within_kl_bound():
     def closure():  # measured KL is 4x the quadratic model: the first trials must be rejected
         return (c * delta()).sum(), 4 * model_kl()
 
-    info = TRPOStep(params, max_kl=0.01, cg_iters=30)(closure, hvp_closure=model_kl)
+    info = TRPOStep(params, max_kl=0.01, cg_iters=30, hvp=KLHessian(lambda batch: model_kl()))(closure)
     assert info["accepted"] == 1.0 and info["backtracks"] > 1
     assert info["rejected_kl"] == info["backtracks"] - 1 and info["rejected_surrogate"] == 0  # too far, not worse
     assert 0 < info["kl"] <= 0.01 and info["improvement"] > 0

@@ -15,6 +15,7 @@ from umrl.configs.common import (
     cudagraphs_errors,
 )
 from umrl.configs.validate import boolean, checked, choice, group, integer, number, string
+from umrl.objectives.maml_hvp import META_HVPS
 from umrl.proposals import PROPOSALS
 from umrl.validation import InvalidValue, check_bool, check_path_exists
 
@@ -24,9 +25,10 @@ COMPILE_UNSUPPORTED = (
 )
 """Why ``compile=true`` is refused."""
 
-HVP_MODES = ("gauss_newton", "analytic", "exact")
+HVP_MODES = tuple(META_HVPS)
 """``trpo.hvp``: ``gauss_newton`` (J^T F J through the inner step, by autograd), ``analytic`` (the same product
-derived by hand for the ReLU MLP policy: equal to float rounding, faster) or ``exact`` (the KL's Hessian)."""
+derived by hand for the ReLU MLP policy: equal to float rounding, faster) or ``exact`` (the KL's Hessian); the
+strategies are :data:`umrl.objectives.maml_hvp.META_HVPS`."""
 
 
 @dataclass

@@ -5,10 +5,12 @@ them with a Python loop of ``functional_call`` or with ``torch.func.vmap`` costs
 every forward and every (double) backward; here the whole ``[T, M, in]`` input goes through each layer as one batched
 matmul, whose backward and double backward are batched matmuls too.
 
-:class:`BatchedGaussianMLP` reads the structure of the loc/scale network that
-:func:`umrl.modules.policy.make_gaussian_policy` builds — ``Sequential(MLP, AddStateIndependentNormalScale)``, the MLP
-made of ``nn.Linear`` and element-wise activations, optionally behind the policy's input concatenation — and returns
-``None`` for any other network, so callers fall back to ``vmap``.
+:func:`umrl.modules.policy.make_gaussian_policy` declares its network's layers when it builds it
+(:func:`declare_batched_layers`: the MLP of ``nn.Linear`` and element-wise activations and the
+``AddStateIndependentNormalScale`` head, recorded on the loc/scale ``TensorDictModule``); a layer this evaluation
+cannot run makes the declaration, and so the policy's construction, fail. :meth:`BatchedGaussianMLP.from_net` reads
+the declaration and finds each parameter's key by identity, so nesting and naming are free to change. A network
+without a declaration, or one changed since (a layer replaced), gets ``None``, and callers evaluate it with ``vmap``.
 
 :class:`ReLUMLPLinearization` differentiates such a network by hand when it is a ReLU MLP: forward tangents,
 gradients and their directional derivatives as batched matmuls over the kept activations, without an autograd graph
@@ -22,9 +24,19 @@ from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule
 from tensordict.nn.utils import mappings
 from torch import nn
 
-__all__ = ["BatchedGaussianMLP", "ReLUMLPLinearization"]
+__all__ = ["BatchedGaussianMLP", "ReLUMLPLinearization", "declare_batched_layers"]
 
 _ELEMENTWISE = (nn.ReLU, nn.Tanh, nn.ELU, nn.LeakyReLU, nn.SiLU, nn.GELU, nn.Sigmoid, nn.Softplus, nn.Identity)
+DECLARATION = "batched_mlp_layers"
+"""Attribute of the loc/scale ``TensorDictModule`` holding its declared ``(mlp, head)``."""
+
+
+def declare_batched_layers(module: TensorDictModule, mlp: nn.Sequential, head: AddStateIndependentNormalScale) -> None:
+    """Declare that ``module`` computes ``(loc, scale)`` as ``head(mlp(inputs))`` (inputs concatenated), so
+    :class:`BatchedGaussianMLP` evaluates it for per-task parameters; ``ValueError`` if it cannot (a layer other
+    than ``nn.Linear`` and element-wise activations, another head)."""
+    BatchedGaussianMLP._from_parts(module, module, mlp, head)
+    setattr(module, DECLARATION, (mlp, head))
 
 
 class BatchedGaussianMLP:
@@ -46,35 +58,44 @@ class BatchedGaussianMLP:
 
     @classmethod
     def from_net(cls, net: nn.Module) -> BatchedGaussianMLP | None:
-        """Recognise ``net`` (a ``TensorDictSequential`` of one ``TensorDictModule``, as ``FunctionalPolicy.net``).
+        """The declared layers of ``net`` (a ``TensorDictSequential`` of one ``TensorDictModule``, as
+        ``FunctionalPolicy.net``, or that module), or ``None`` for a network that declares none or no longer matches
+        its declaration.
 
         The parameter keys are ``net``'s own (``TensorDict.from_module(net)``), which are the policy's.
         """
         mods = list(net.module) if hasattr(net, "module") and isinstance(net.module, nn.ModuleList) else [net]
         if len(mods) != 1 or not isinstance(mods[0], TensorDictModule):
             return None
-        prefix = ("module", "0", "module") if mods[0] is not net else ("module",)
-        inner = mods[0].module
-        if not isinstance(inner, nn.Sequential) and isinstance(getattr(inner, "net", None), nn.Sequential):
-            inner, prefix = inner.net, (*prefix, "net")  # the policy's input concatenation
-        if not isinstance(inner, nn.Sequential) or len(inner) != 2:
+        parts = getattr(mods[0], DECLARATION, None)
+        if parts is None:
             return None
-        mlp, head = inner
-        if not isinstance(mlp, nn.Sequential) or not isinstance(head, AddStateIndependentNormalScale):
+        try:
+            return cls._from_parts(net, mods[0], *parts)
+        except ValueError:
             return None
-        if "state_independent_scale" not in dict(head.named_parameters()):
-            return None
+
+    @classmethod
+    def _from_parts(cls, net: nn.Module, module: TensorDictModule, mlp: nn.Sequential,
+                    head: AddStateIndependentNormalScale) -> BatchedGaussianMLP:
+        """The layers of ``mlp`` and ``head`` (submodules of ``module``, itself in ``net``), keyed as in ``net``;
+        ``ValueError`` naming what does not fit."""
+        keys = {id(p): tuple(name.split(".")) for name, p in net.named_parameters()}
+        if not any(m is mlp for m in module.modules()) or not any(m is head for m in module.modules()):
+            raise ValueError("the declared MLP and scale head are no longer part of the policy's module.")
+        if not isinstance(head, AddStateIndependentNormalScale) or id(head.state_independent_scale) not in keys:
+            raise ValueError(f"the scale head must be an AddStateIndependentNormalScale, got {type(head).__name__}.")
         layers = []
         for name, layer in mlp.named_children():
             if isinstance(layer, nn.Linear):
-                bias = (*prefix, "0", name, "bias") if layer.bias is not None else None
-                layers.append(("linear", (*prefix, "0", name, "weight"), bias))
+                layers.append(("linear", keys[id(layer.weight)], None if layer.bias is None else keys[id(layer.bias)]))
             elif type(layer) in _ELEMENTWISE:
                 layers.append(("act", layer))
             else:
-                return None
-        return cls(list(mods[0].in_keys), layers, (*prefix, "1", "state_independent_scale"),
-                   head.scale_mapping, head.scale_lb)
+                raise ValueError(f"layer {name} of the policy's MLP is a {type(layer).__name__}; the task-batched "
+                                 f"evaluation runs nn.Linear and the element-wise {[t.__name__ for t in _ELEMENTWISE]}.")
+        return cls(list(module.in_keys), layers, keys[id(head.state_independent_scale)], head.scale_mapping,
+                   head.scale_lb)
 
     def __call__(self, params: TensorDictBase, inputs: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         h, num_tasks, batch = self.flat_input(inputs)

@@ -17,6 +17,8 @@ from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule
 from torch import nn
 from torchrl.modules import MLP, IndependentNormal, ProbabilisticActor
 
+from umrl.modules.batched_mlp import declare_batched_layers
+
 
 def make_gaussian_policy(
     obs_dim: int,
@@ -45,6 +47,7 @@ def make_gaussian_policy(
     net = nn.Sequential(mlp, AddStateIndependentNormalScale(act_dim, init_value=math.log(init_std), scale_lb=1e-6))
     module = TensorDictModule(_Concat(net) if len(in_keys) > 1 else net, in_keys=list(in_keys),
                               out_keys=["loc", "scale"])
+    declare_batched_layers(module, mlp, net[1])  # MAML evaluates every task's parameters in one matmul per layer
     return ProbabilisticActor(
         module,
         in_keys=["loc", "scale"],

@@ -4,10 +4,15 @@
   :class:`DIAYNUpdate` performs one update with it (eager, compiled or in a CUDA graph).
 - :class:`MAMLLoss` (:mod:`umrl.objectives.maml`): MAML with a policy-gradient inner step and TRPO's surrogate.
 - :class:`VIMELoss` (:mod:`umrl.objectives.vime`): the Bayesian dynamics model's negative ELBO.
+- :class:`ImportanceSamplingLoss` (:mod:`umrl.objectives.trpo_surrogate`): TRPO's surrogate for one policy (VIME).
+- MAML's KL Hessian-vector products for TRPO (:mod:`umrl.objectives.maml_hvp`) and the losses' value estimator
+  :class:`LinearBaselineGAE` (:mod:`umrl.objectives.advantage`).
 - policy-gradient helpers (:mod:`umrl.objectives.policy_gradient`): advantages, baseline, surrogate, returns.
 """
+from umrl.objectives.advantage import LinearBaselineGAE
 from umrl.objectives.diayn import DIAYNLoss, DIAYNUpdate, make_diayn_optimizers
 from umrl.objectives.maml import MAMLLoss
+from umrl.objectives.maml_hvp import META_HVPS, AnalyticHVP, ExactHVP, GaussNewtonHVP, make_meta_hvp
 from umrl.objectives.policy_gradient import (
     baseline_features,
     compute_advantages,
@@ -17,11 +22,18 @@ from umrl.objectives.policy_gradient import (
     trajectory_mask,
     vpg_loss,
 )
+from umrl.objectives.trpo_surrogate import ImportanceSamplingLoss
 from umrl.objectives.vime import VIMELoss
 
 __all__ = [
+    "META_HVPS",
+    "AnalyticHVP",
     "DIAYNLoss",
     "DIAYNUpdate",
+    "ExactHVP",
+    "GaussNewtonHVP",
+    "ImportanceSamplingLoss",
+    "LinearBaselineGAE",
     "MAMLLoss",
     "VIMELoss",
     "baseline_features",
@@ -30,6 +42,7 @@ __all__ = [
     "episode_returns",
     "fit_linear_baseline",
     "make_diayn_optimizers",
+    "make_meta_hvp",
     "trajectory_mask",
     "vpg_loss",
 ]

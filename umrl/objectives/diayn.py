@@ -163,6 +163,12 @@ class DIAYNLoss(LossModule):
         }
         return sorted(keys, key=str)
 
+    @property
+    def out_keys(self) -> list[str]:
+        """SAC's outputs (``loss_actor``, ``loss_qvalue``, ``loss_alpha``, ``alpha``, ``entropy``) and the
+        discriminator's (``loss_discriminator``, ``discriminator_accuracy``, ``pseudo_reward``)."""
+        return [*self.sac_loss.out_keys, "loss_discriminator", "discriminator_accuracy", "pseudo_reward"]
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         # One forward of D serves both its loss and the relabelled reward (the reward sees detached logits).
         logits = discriminator_logits(self.discriminator, tensordict.get(self.tensor_keys.discriminator_observation))

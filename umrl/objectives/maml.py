@@ -6,33 +6,39 @@ dimension; :meth:`MAMLLoss.forward` scores them on the *query* batch (collected 
 with TRPO's importance-weighted surrogate. The outer optimiser (``umrl.optim.trpo.TRPOStep``) and the advantage
 computation (``umrl.objectives.policy_gradient.compute_advantages``) live outside the loss.
 
-Batches are ``[T, N, H]`` TensorDicts from :func:`umrl.rollout.collect` with ``"advantage"`` already written.
+Batches are ``[T, N, H]`` TensorDicts from :func:`umrl.rollout.collect`; the loss's value estimator
+(:meth:`MAMLLoss.make_value_estimator`, a :class:`~umrl.objectives.advantage.LinearBaselineGAE`) writes their
+``"advantage"``. :meth:`MAMLLoss.forward` reads one TensorDict of batch ``[T]`` holding both (:meth:`MAMLLoss.pack`).
 
 Example:
     >>> loss = MAMLLoss(policy, inner_lr=0.1)
-    >>> support = compute_advantages(collect(env, policy, num_tasks=T, horizon=H))
+    >>> support = loss.value_estimator(collect(env, policy, num_tasks=T, horizon=H))
     >>> adapted = loss.adapt(support)                                  # batch [T]
-    >>> query = compute_advantages(collect(env, policy, num_tasks=T, horizon=H, params=adapted))
-    >>> out = loss(support, query)
+    >>> query = loss.value_estimator(collect(env, policy, num_tasks=T, horizon=H, params=adapted))
+    >>> out = loss(loss.pack(support, query, adapted))                 # reuses adapted's graph
     >>> out["loss_objective"].backward()                               # meta-gradient, through the inner step
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from tensordict.utils import NestedKey
 from torch.distributions import Normal, kl_divergence
 from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import LossModule
+from torchrl.objectives.utils import ValueEstimators
 
 from umrl.modules.batched_mlp import ReLUMLPLinearization
-from umrl.objectives.policy_gradient import episode_returns, vpg_loss
+from umrl.objectives.advantage import LinearBaselineGAE, check_value_type
+from umrl.objectives.policy_gradient import vpg_loss
 from umrl.rollout import FunctionalPolicy
 from umrl.validation import check_int, check_positive
 
-__all__ = ["MAMLLoss", "gaussian_kl"]
+__all__ = ["MAMLLoss", "gaussian_kl", "masked_mean"]
 
 
 def gaussian_kl(loc0: torch.Tensor, scale0: torch.Tensor, loc1: torch.Tensor, scale1: torch.Tensor) -> torch.Tensor:
@@ -41,7 +47,7 @@ def gaussian_kl(loc0: torch.Tensor, scale0: torch.Tensor, loc1: torch.Tensor, sc
     return kl_divergence(p, q).sum(-1)
 
 
-def _masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+def masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Mean of ``x`` ``[T, N, H]`` over the valid steps of each task, then over tasks."""
     w = mask.to(x.dtype)
     return ((x * w).sum((-2, -1)) / w.sum((-2, -1)).clamp_min(1)).mean()
@@ -63,28 +69,51 @@ class MAMLLoss(LossModule):
             :class:`umrl.rollout.FunctionalPolicy`. The inner step, surrogate, KL and Hessian-vector products all go
             through it, so with the default no Python loop over tasks runs on the learning step's hot path.
 
-    Inputs to :meth:`forward` (both ``[T, N, H]``, see :func:`umrl.rollout.collect`): ``support`` with
-    ``"observation"``, ``"action"``, ``"advantage"``, ``"mask"``, ``("next", "reward")``; ``query`` with the same
-    plus ``"action_log_prob"``, ``"loc"``, ``"scale"`` from the adapted policy that collected it.
+    Input of :meth:`forward`: a TensorDict of batch ``[T]`` (:meth:`pack`) with ``"support"`` and ``"query"``, each
+    ``[T, N, H]`` (see :func:`umrl.rollout.collect`): ``support`` with ``"observation"``, ``"action"``,
+    ``"advantage"``, ``"mask"``, ``("next", "reward")``; ``query`` with the same plus ``"action_log_prob"``,
+    ``"loc"``, ``"scale"`` from the adapted policy that collected it. Optionally ``"adapted"``: :meth:`adapt`'s
+    result at the current θ (with its graph), which the forward then reuses instead of redoing the inner step.
+    Every key can be renamed with :meth:`set_keys`; :attr:`in_keys` lists them.
 
-    Outputs of :meth:`forward`: ``loss_objective`` (−importance-weighted advantage on the query, differentiable
-    through the inner step) and detached diagnostics ``kl`` (mean KL(collecting policy ‖ current adapted policy)),
-    ``inner_loss``, ``return_pre`` / ``return_post`` (mean undiscounted episode return of support / query),
-    ``ratio_max``.
+    Outputs of :meth:`forward` (:attr:`out_keys`): ``loss_objective`` (−importance-weighted advantage on the query,
+    differentiable through the inner step), ``trust_region_kl`` (mean KL(collecting policy ‖ current adapted
+    policy), also differentiable: TRPO's constraint, not a term to add to the loss) and detached diagnostics ``kl``
+    (its value), ``inner_loss`` (the inner loss at θ), ``return_pre`` / ``return_post`` (mean undiscounted episode
+    return of support / query), ``ratio_max``.
+
+    The advantages are the caller's: :meth:`make_value_estimator` (``gamma``, ``lmbda``, ``normalize``) configures
+    :attr:`value_estimator`, a :class:`~umrl.objectives.advantage.LinearBaselineGAE` writing ``"advantage"``.
     """
 
     @dataclass
     class _AcceptedKeys:
-        """Keys read by the loss (change with ``set_keys``)."""
+        """Keys read by the loss (change with ``set_keys``).
 
-        action: str = "action"
-        action_log_prob: str = "action_log_prob"
-        advantage: str = "advantage"
-        loc: str = "loc"
-        scale: str = "scale"
-        mask: str = "mask"
+        Attributes:
+            support, query: the two ``[T, N, H]`` batches inside the forward's input. Default ``"support"``,
+                ``"query"``.
+            adapted: optional adapted parameters ``[T]`` inside the input. Default ``"adapted"``.
+            action, action_log_prob, advantage, loc, scale, mask: inside each batch (the log-prob, loc and scale of
+                the collecting policy: query only). Defaults are their names.
+            reward: under ``"next"`` in each batch (the diagnostics' returns). Default ``"reward"``.
+        """
+
+        support: NestedKey = "support"
+        query: NestedKey = "query"
+        adapted: NestedKey = "adapted"
+        action: NestedKey = "action"
+        action_log_prob: NestedKey = "action_log_prob"
+        advantage: NestedKey = "advantage"
+        loc: NestedKey = "loc"
+        scale: NestedKey = "scale"
+        mask: NestedKey = "mask"
+        reward: NestedKey = "reward"
 
     default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
+    default_value_estimator = ValueEstimators.GAE
+    out_keys: ClassVar[list[str]] = ["loss_objective", "trust_region_kl", "kl", "inner_loss", "return_pre", "return_post", "ratio_max"]
 
     def __init__(
         self,
@@ -104,8 +133,36 @@ class MAMLLoss(LossModule):
         self.num_inner_steps = num_inner_steps
         self.first_order = first_order
 
-    def _forward_value_estimator_keys(self, **kwargs) -> None:  # no value estimator: advantages come precomputed
-        pass
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        if self._value_estimator is not None:
+            self._value_estimator.advantage_key = self.tensor_keys.advantage
+
+    def make_value_estimator(self, value_type=None, **hyperparams) -> MAMLLoss:
+        """Set :attr:`value_estimator`: rllab's linear feature baseline with GAE (``value_type`` None or
+        ``ValueEstimators.GAE``); ``hyperparams``: ``gamma``, ``lmbda``, ``normalize`` of
+        :class:`~umrl.objectives.advantage.LinearBaselineGAE` (MAML-RL's 0.99, 1.0, true by default)."""
+        check_value_type(value_type)
+        hyperparams.pop("device", None)  # TorchRL's default construction passes it; the baseline fits on the data's
+        self._value_estimator = LinearBaselineGAE(**hyperparams, advantage_key=self.tensor_keys.advantage)
+        return self
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        """Every key :meth:`forward` reads (besides the optional ``adapted``), nested under support / query."""
+        keys = self.tensor_keys
+        shared = [keys.action, keys.advantage, keys.mask, ("next", keys.reward), *self.functional_policy.net.in_keys]
+        query_only = [keys.action_log_prob, keys.loc, keys.scale]
+        return [(keys.support, k) for k in shared] + [(keys.query, k) for k in [*shared, *query_only]]
+
+    def pack(self, support: TensorDictBase, query: TensorDictBase,
+             adapted: TensorDictBase | None = None) -> TensorDictBase:
+        """The forward's input: ``support`` and ``query`` (``[T, N, H]``) and optionally ``adapted`` (``[T]``, with
+        its graph) in one TensorDict of batch ``[T]``, under this loss's keys."""
+        keys = self.tensor_keys
+        td = TensorDict({keys.support: support, keys.query: query}, batch_size=support.shape[:1])
+        if adapted is not None:
+            td.set(keys.adapted, adapted)
+        return td
 
     @property
     def params(self) -> TensorDictBase:
@@ -121,7 +178,9 @@ class MAMLLoss(LossModule):
 
     def inner_loss(self, params: TensorDictBase, support: TensorDictBase) -> torch.Tensor:
         """Per-task vanilla PG loss ``[T]`` of ``params`` (shared or ``[T]``) on ``support``."""
-        return vpg_loss(self.functional_policy.log_prob(params, support), support)
+        keys = self.tensor_keys
+        log_prob = self.functional_policy.dist(params, support).log_prob(support[keys.action])
+        return vpg_loss(log_prob, support, advantage_key=keys.advantage, mask_key=keys.mask)
 
     def adapt(self, support: TensorDictBase, params: TensorDictBase | None = None) -> TensorDictBase:
         """Adapted parameters φ_t, one set per task, with batch size ``[T]``.
@@ -131,6 +190,11 @@ class MAMLLoss(LossModule):
         under ``torch.no_grad`` (e.g. for collection) the inner gradients are still taken and the result is
         detached.
         """
+        return self._adapt(support, params)[0]
+
+    def _adapt(self, support: TensorDictBase, params: TensorDictBase | None) -> tuple[TensorDictBase, torch.Tensor | None]:
+        """:meth:`adapt`'s parameters and the first inner step's mean inner loss at θ (detached; ``None`` without
+        inner steps)."""
         self._check(support, "support", [self.tensor_keys.action, self.tensor_keys.advantage, self.tensor_keys.mask])
         theta = self.params if params is None else params
         num_tasks = support.shape[0]
@@ -138,17 +202,20 @@ class MAMLLoss(LossModule):
         create_graph = track and not self.first_order
         phi = theta.expand(num_tasks) if track else theta.detach().expand(num_tasks)
         keys = list(phi.keys(True, True))
+        first_loss = None
         for _ in range(self.num_inner_steps):
             with torch.enable_grad():
                 if not track:
                     phi = phi.detach().requires_grad_(True)
                 loss = self.inner_loss(phi, support).sum()  # tasks are independent: grad of the sum is per task
                 grads = torch.autograd.grad(loss, [phi.get(k) for k in keys], create_graph=create_graph)
+            if first_loss is None:
+                first_loss = loss.detach() / num_tasks
             new_phi = phi.empty()
             for key, grad in zip(keys, grads):
                 new_phi.set(key, phi.get(key) - self.inner_lr * grad)
             phi = new_phi if track else new_phi.detach()
-        return phi
+        return phi, first_loss
 
     def _surrogate_and_kl(
         self, phi: TensorDictBase, query: TensorDictBase
@@ -157,9 +224,9 @@ class MAMLLoss(LossModule):
         dist_params = self.functional_policy.dist_params(phi, query)
         dist = self.policy.build_dist_from_params(dist_params)
         ratio = (dist.log_prob(query[keys.action]) - query[keys.action_log_prob]).exp()
-        surrogate = -_masked_mean(ratio * query[keys.advantage].squeeze(-1), query[keys.mask])
+        surrogate = -masked_mean(ratio * query[keys.advantage].squeeze(-1), query[keys.mask])
         kl = gaussian_kl(query[keys.loc], query[keys.scale], dist_params["loc"], dist_params["scale"])
-        return surrogate, _masked_mean(kl, query[keys.mask]), ratio
+        return surrogate, masked_mean(kl, query[keys.mask]), ratio
 
     def objective_and_kl(
         self, support: TensorDictBase, query: TensorDictBase, phi: TensorDictBase | None = None
@@ -191,7 +258,7 @@ class MAMLLoss(LossModule):
         phi = self.adapt(support)
         new = self.functional_policy.dist_params(phi, query)  # its detached value is the stop-gradient side
         kl = gaussian_kl(new["loc"].detach(), new["scale"].detach(), new["loc"], new["scale"])
-        return _masked_mean(kl, query[self.tensor_keys.mask])
+        return masked_mean(kl, query[self.tensor_keys.mask])
 
     def _subsample(self, support, query, fraction, generator):
         if not 0 < fraction <= 1:
@@ -238,7 +305,7 @@ class MAMLLoss(LossModule):
             phi_leaves = [phi.get(k) for k in keys]
             new = self.functional_policy.dist_params(phi, query)  # phi is a leaf: the stop-gradient copy is new's value
             kl = gaussian_kl(new["loc"].detach(), new["scale"].detach(), new["loc"], new["scale"])
-            kl = _masked_mean(kl, query["mask"])
+            kl = masked_mean(kl, query[self.tensor_keys.mask])
             kl_grads = torch.autograd.grad(kl, phi_leaves, create_graph=True)
         shapes = [p.shape[1:] for p in phi_leaves]
         sizes = [s.numel() for s in shapes]
@@ -368,22 +435,33 @@ class MAMLLoss(LossModule):
         net = self.functional_policy.batched
         return net is not None and net.is_relu_mlp
 
-    def forward(self, support: TensorDictBase, query: TensorDictBase) -> TensorDictBase:
+    def _episode_return(self, td: TensorDictBase) -> torch.Tensor:
+        """Mean undiscounted return of the batch's first episodes (the mask's valid steps)."""
         keys = self.tensor_keys
+        return (td.get(("next", keys.reward)).squeeze(-1) * td.get(keys.mask)).sum(-1).mean()
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        keys = self.tensor_keys
+        support, query = tensordict.get(keys.support), tensordict.get(keys.query)
         self._check(query, "query", [keys.action, keys.action_log_prob, keys.advantage, keys.loc, keys.scale, keys.mask])
         if query.shape[0] != support.shape[0]:
             raise ValueError(f"support has {support.shape[0]} tasks but query has {query.shape[0]}.")
-        phi = self.adapt(support)
+        phi, inner = tensordict.get(keys.adapted, None), None
+        if phi is None:
+            phi, inner = self._adapt(support, None)
         surrogate, kl, ratio = self._surrogate_and_kl(phi, query)
         with torch.no_grad():
-            inner = self.inner_loss(self.params, support).mean()
+            if inner is None:  # adapted given, or no inner step
+                inner = self.inner_loss(self.params, support).mean()
+            return_pre, return_post = self._episode_return(support), self._episode_return(query)
         return TensorDict(
             {
                 "loss_objective": surrogate,
                 "kl": kl.detach(),
+                "trust_region_kl": kl,
                 "inner_loss": inner,
-                "return_pre": episode_returns(support).mean(),
-                "return_post": episode_returns(query).mean(),
+                "return_pre": return_pre,
+                "return_post": return_post,
                 "ratio_max": ratio.detach().max(),
             },
             batch_size=[],

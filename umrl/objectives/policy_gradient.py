@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import torch
 from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
 from torchrl.objectives.value.functional import vec_generalized_advantage_estimate
 
 from umrl.trajectories import trajectory_mask
@@ -137,21 +138,26 @@ def compute_advantages(
     return td
 
 
-def vpg_loss(log_prob: torch.Tensor, td: TensorDictBase) -> torch.Tensor:
+def vpg_loss(
+    log_prob: torch.Tensor, td: TensorDictBase, *, advantage_key: NestedKey = "advantage", mask_key: NestedKey = "mask"
+) -> torch.Tensor:
     """Vanilla policy-gradient surrogate ``−mean_valid(log π(a|s) · A)`` per leading index.
 
     Args:
         log_prob: ``[..., N, H]`` log-probabilities of ``td["action"]`` under the policy being differentiated.
-        td: batch ``[..., N, H]`` with ``"advantage"`` ``[..., N, H, 1]`` and ``"mask"`` ``[..., N, H]``.
+        td: batch ``[..., N, H]`` with the advantage ``[..., N, H, 1]`` and the mask ``[..., N, H]``.
+
+    Keyword Args:
+        advantage_key, mask_key: where ``td`` holds them (``"advantage"``, ``"mask"``).
 
     Returns:
         ``[...]`` — e.g. one loss per task for a ``[T, N, H]`` batch (a scalar for ``[N, H]``).
     """
-    mask = td["mask"]
+    mask = td[mask_key]
     if log_prob.shape != mask.shape:
         raise ValueError(f"log_prob has shape {tuple(log_prob.shape)}, expected the batch's [..., N, H] {tuple(mask.shape)}.")
     weights = mask.to(log_prob.dtype)
-    return -(log_prob * td["advantage"].squeeze(-1) * weights).sum((-2, -1)) / weights.sum((-2, -1)).clamp_min(1)
+    return -(log_prob * td[advantage_key].squeeze(-1) * weights).sum((-2, -1)) / weights.sum((-2, -1)).clamp_min(1)
 
 
 def _first_episode(td: TensorDictBase) -> torch.Tensor:

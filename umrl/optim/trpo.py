@@ -8,9 +8,9 @@ policy updates. It is agnostic to what the surrogate is: it only needs
   current one). It is called once with gradients enabled to build the step and once per line-search trial under
   ``torch.no_grad`` (a closure that differentiates internally, like MAML's inner step, re-enables grad itself).
   The first call can be replaced by its ready value (``initial=``) when the caller already has it.
-* optionally ``hvp_closure() -> kl``: the KL whose Hessian-vector products drive conjugate gradient, e.g. the same
-  KL on a subsample of the batch. Defaults to the ``kl`` returned by ``closure``. Or ``hvp() -> (v -> H v)``: a
-  ready-made Hessian-vector product (MAML's Gauss-Newton form avoids third-order derivatives).
+* a Hessian-vector product strategy, given once at construction (``hvp=``, :mod:`umrl.optim.hvp`): by default the
+  double backward of the closure's ``kl`` (:class:`~umrl.optim.hvp.KLHessian`); MAML's products through the inner
+  step are in :mod:`umrl.objectives.maml_hvp`. The step's ``batch=`` argument is handed to the strategy.
 
 Example:
     >>> policy = torch.nn.Linear(3, 2)
@@ -30,10 +30,12 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
 
+from umrl.optim.hvp import HessianVectorProduct, KLHessian, flat_grad
 from umrl.profiling import device_clock
 from umrl.validation import check_float, check_int, check_positive
 
@@ -92,6 +94,8 @@ class TRPOStep:
             storage with the module, so updating ``params`` updates the module). Leaves must require grad.
 
     Keyword Args:
+        hvp: how to multiply by the KL Hessian (:class:`~umrl.optim.hvp.HessianVectorProduct`); default
+            :class:`~umrl.optim.hvp.KLHessian` of the closure's KL.
         max_kl: trust-region radius on the mean KL (default 0.01).
         damping: Tikhonov damping added to the Hessian-vector product (default 1e-5).
         cg_iters: conjugate-gradient iterations (default 10).
@@ -112,6 +116,7 @@ class TRPOStep:
         self,
         params: TensorDictBase,
         *,
+        hvp: HessianVectorProduct | None = None,
         max_kl: float = 0.01,
         damping: float = 1e-5,
         cg_iters: int = 10,
@@ -123,6 +128,9 @@ class TRPOStep:
         cg_iters = check_int("cg_iters", cg_iters, min=1)
         backtrack_ratio = check_float("backtrack_ratio", backtrack_ratio, gt=0, lt=1)
         max_backtracks = check_int("max_backtracks", max_backtracks, min=1)
+        if hvp is not None and not isinstance(hvp, HessianVectorProduct):
+            raise TypeError(f"hvp: got {hvp!r}; expected a umrl.optim.hvp.HessianVectorProduct (e.g. KLHessian()).")
+        self.hvp = KLHessian() if hvp is None else hvp
         self.params = params
         self.leaves = list(params.values(include_nested=True, leaves_only=True))
         if not self.leaves or not all(p.requires_grad for p in self.leaves):
@@ -133,12 +141,8 @@ class TRPOStep:
         self.backtrack_ratio = backtrack_ratio
         self.max_backtracks = max_backtracks
 
-    def _flat(self, tensors) -> torch.Tensor:
-        return torch.cat([t.reshape(-1) for t in tensors])
-
     def _grad(self, scalar: torch.Tensor, **kwargs) -> torch.Tensor:
-        grads = torch.autograd.grad(scalar, self.leaves, allow_unused=True, **kwargs)
-        return self._flat(torch.zeros_like(p) if g is None else g for p, g in zip(self.leaves, grads))
+        return flat_grad(scalar, self.leaves, **kwargs)
 
     @torch.no_grad()
     def _set(self, saved: list[torch.Tensor], step: torch.Tensor | None) -> None:
@@ -152,36 +156,16 @@ class TRPOStep:
                 p.copy_(p0 - step[offset : offset + n].view_as(p))
                 offset += n
 
-    def hvp_builder(self, kl: torch.Tensor) -> Callable[[torch.Tensor], torch.Tensor]:
-        """Damped KL Hessian-vector product ``v -> (H + damping I) v``.
-
-        The KL's gradient graph is built once (``create_graph=True``) and reused by every call, which saves a
-        forward/backward through the KL per conjugate-gradient iteration.
-        """
-        flat_grad_kl = self._grad(kl, create_graph=True)
-        if not flat_grad_kl.requires_grad:
-            raise ValueError("The KL's gradient does not depend on the parameters: is it computed from them?")
-
-        def hvp(v: torch.Tensor) -> torch.Tensor:
-            return self._grad(flat_grad_kl.dot(v), retain_graph=True) + self.damping * v
-
-        return hvp
-
     def __call__(
         self,
         closure: Callable[[], tuple[torch.Tensor, torch.Tensor]],
-        hvp_closure: Callable[[], torch.Tensor] | None = None,
         *,
-        hvp: Callable[[], Callable[[torch.Tensor], torch.Tensor]] | None = None,
+        batch: Any = None,
         initial: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> dict[str, float]:
-        """One step. ``hvp_closure() -> kl`` replaces the closure's KL for the Hessian-vector products; ``hvp() ->
-        (v -> H v)`` replaces them altogether (an undamped product on flat vectors ordered like the params' leaves,
-        e.g. ``MAMLLoss.gauss_newton_hvp``); at most one of the two. ``initial``: ``closure()``'s value at the
-        current parameters, already computed with its graph (e.g. reusing MAML's inner-step graph); the closure is
-        then only called for line-search trials."""
-        if hvp is not None and hvp_closure is not None:
-            raise ValueError("give either hvp_closure or hvp, not both.")
+        """One step. ``batch``: the data the Hessian-vector product strategy needs (e.g. a MAML meta-batch), passed
+        to its ``build``. ``initial``: ``closure()``'s value at the current parameters, already computed with its
+        graph (e.g. reusing MAML's inner-step graph); the closure is then only called for line-search trials."""
         with torch.enable_grad():
             loss, kl = closure() if initial is None else initial
             if loss.dim() != 0 or kl.dim() != 0:
@@ -190,14 +174,11 @@ class TRPOStep:
             direction_start = time.perf_counter()
             if not math.isfinite(loss_before):
                 raise ValueError(f"TRPO surrogate is not finite ({loss_before}); check rewards and log-probs.")
-            grad = self._grad(loss, retain_graph=hvp_closure is None and hvp is None)
-            if hvp is not None:
-                undamped = hvp()
+            grad = self._grad(loss, retain_graph=self.hvp.uses_closure_kl)
+            undamped = self.hvp.build(kl, self.leaves, batch)
 
-                def damped(v: torch.Tensor) -> torch.Tensor:
-                    return undamped(v) + self.damping * v
-            else:
-                damped = self.hvp_builder(kl if hvp_closure is None else hvp_closure())
+            def damped(v: torch.Tensor) -> torch.Tensor:
+                return undamped(v) + self.damping * v
             cg_start = device_clock(grad.device)
             direction, h_direction = conjugate_gradient(damped, grad, iters=self.cg_iters, with_product=True)
             shs = direction.dot(h_direction).item()
