@@ -25,11 +25,11 @@ import torch
 from umrl.checkpoints import load_maml_policy
 from umrl.checkpoints.labels import labelled_path
 from umrl.envs.tasks import get_task_family
-from umrl.heap import keep_freed_memory
 from umrl.metatest import AdaptationConfig, Initialisation, meta_test
 from umrl.metatest.protocol import SGD_SCHEDULES
 from umrl.metatest.stats import auc, bootstrap_ci, iqm
 from umrl.modules import policy_log_std
+from umrl.process import tune_process
 
 
 def adapt(path: str, log_std: float | None, *, env: str, tasks: torch.Tensor, seed: int,
@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
-    keep_freed_memory()
+    tune_process()
     try:
         config = AdaptationConfig(num_steps=args.steps, num_trajectories=args.trajectories,
                                   sgd_schedule=args.schedule, sgd_later_factor=args.later_factor)

@@ -28,10 +28,10 @@ from torch.utils.flop_counter import FlopCounterMode
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
 from umrl.envs import ENV_NAMES, get_env_spec
-from umrl.heap import keep_freed_memory
 from umrl.modules.discriminator import make_discriminator
 from umrl.modules.sac import make_skill_actor, make_skill_qvalue
 from umrl.objectives.diayn import DIAYNLoss, DIAYNUpdate, make_diayn_optimizers
+from umrl.process import tune_process
 from umrl.profiling import device_clock, matmul_rate
 from umrl.validation import resolve_device
 
@@ -120,7 +120,7 @@ def main() -> None:
         raise SystemExit(f"--cudagraphs needs --device cuda (or auto on a GPU machine); got device {device}.")
     if args.threads:
         torch.set_num_threads(args.threads)
-    keep_freed_memory()  # as the recipes run
+    tune_process()  # as the recipes run
     names = ["eager"] + (["compile"] if args.compile else []) + (["cudagraphs"] if args.cudagraphs else [])
     names += ["compile+cudagraphs"] if args.compile and args.cudagraphs else []
     peak = matmul_rate(device, 4096, 4096, 4096) if device.type == "cuda" else matmul_rate(device, 1024, 1024, 1024)

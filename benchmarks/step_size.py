@@ -47,11 +47,11 @@ from tensordict import TensorDictBase
 from umrl.checkpoints import load_maml_policy
 from umrl.checkpoints.labels import labelled_path
 from umrl.envs.tasks import get_task_family
-from umrl.heap import keep_freed_memory
 from umrl.metatest import AdaptationConfig
 from umrl.metatest.protocol import TaskAdapter, make_eval_env
 from umrl.metatest.stats import iqm
 from umrl.objectives.policy_gradient import compute_advantages, episode_returns, vpg_loss
+from umrl.process import tune_process
 from umrl.runtime import seed_everything
 
 
@@ -200,7 +200,7 @@ def main(argv: list[str] | None = None) -> None:
     if any(scale < 0 for scale in args.scales):
         parser.error(f"--scales: got {args.scales}; expected values >= 0")
     torch.set_num_threads(args.threads)
-    keep_freed_memory()
+    tune_process()
     config = AdaptationConfig(num_steps=args.step, num_trajectories=args.trajectories, sgd_schedule="reference")
     tasks = get_task_family(args.env).eval_tasks(args.num_tasks)
     if args.decompose:

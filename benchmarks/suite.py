@@ -3,7 +3,7 @@
 Runs UML-DIAYN, UML-random, oracle, VIME-init, DIAYN-init and scratch on the chosen envs and seeds::
 
     python benchmarks/suite.py profile=quick                     # point_nav, reduced budgets, minutes on 2 cores
-    python benchmarks/suite.py profile=paper envs=[point_nav]    # PROTOCOL.md settings
+    python benchmarks/suite.py profile=paper envs=[point_nav]    # docs/protocol.md settings
     python benchmarks/suite.py profile=quick launcher.ray_address=auto   # jobs as Ray tasks on a cluster
     python benchmarks/suite.py profile=quick device=auto         # pre-training and meta-test on a GPU if there is one
 
@@ -89,6 +89,7 @@ from umrl.metatest.cache import (
     source_version,
     write_json_atomic,
 )
+from umrl.process import tune_process
 from umrl.runtime import Checkpointer, log_image, log_metrics, make_logger, to_container, write_text_atomic
 
 BUDGET_KEYS = {"diayn": "collector.total_frames", "maml": "iterations", "vime": "iterations"}
@@ -497,6 +498,7 @@ def run_suite(cfg: DictConfig, *, log: Callable[[str], None] = print) -> str:
 
 @hydra.main(version_base="1.3", config_path="config", config_name="suite")
 def main(cfg: DictConfig) -> None:
+    tune_process(num_threads=cfg.launcher.threads)  # as each worker (umrl.launch): jobs of workers=0 run here
     run_suite(cfg)
 
 

@@ -64,8 +64,8 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from umrl.envs import ENV_NAMES, make_env
 from umrl.envs.mujoco_batched import BATCHED_ENVS, MODEL_SPECS
 from umrl.envs.threads import torch_threads_beside_physics
-from umrl.heap import keep_freed_memory
 from umrl.modules.policy import make_gaussian_policy
+from umrl.process import tune_process
 from umrl.rollout import collect
 
 warnings.filterwarnings("ignore", message=".*settotalmass.*")
@@ -492,7 +492,7 @@ def main() -> None:
         "--threads-list", type=int, nargs="+", default=None, help="thread counts of the scaling table"
     )
     args = parser.parse_args()
-    keep_freed_memory()  # as the recipes run
+    tune_process()  # as the recipes run
     if args.scaling:
         repeats = 2 if args.quick else args.repeats
         print(f"umrl thread scaling: {NUM_CPUS} CPUs usable")

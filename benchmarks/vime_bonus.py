@@ -18,9 +18,9 @@ import time
 import torch
 
 from umrl.envs import ENV_NAMES, make_env
-from umrl.heap import keep_freed_memory
 from umrl.modules.bnn import BayesianDynamics
 from umrl.modules.policy import make_gaussian_policy
+from umrl.process import tune_process
 from umrl.rollout import collect
 from umrl.transforms.vime_bonus import VIMEBonus
 
@@ -61,7 +61,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.threads is not None:
         torch.set_num_threads(args.threads)
-    keep_freed_memory()  # as the recipes run
+    tune_process()  # as the recipes run
     result = run(args.env, args.num_envs, args.horizon, args.repeats, args.num_samples)
     print(f"{args.env}: {result['transitions']} transitions, threads={torch.get_num_threads()}, "
           f"median of {args.repeats}: collect {result['collect_s']:.3f} s, bonus {result['bonus_s']:.3f} s, "

@@ -1,6 +1,6 @@
 """DIAYN on a reward-free env: skill-conditioned SAC + a skill discriminator (the UMRL task proposal).
 
-    python recipes/diayn.py env.name=point_nav                       # 50 skills, PROTOCOL.md defaults
+    python recipes/diayn.py env.name=point_nav                       # 50 skills, docs/protocol.md defaults
     python recipes/diayn.py env.name=half_cheetah logger.backend=csv
     python recipes/diayn.py env.name=point_nav resume=true           # continue from the latest checkpoint
 
@@ -41,10 +41,10 @@ from umrl.configs import RESUME_ALLOW, check_resume, validate
 from umrl.configs.diayn import DIAYNConfig
 from umrl.envs import get_env_spec, make_env
 from umrl.envs.threads import batches_beside_physics
-from umrl.heap import keep_freed_memory
 from umrl.modules.discriminator import make_discriminator
 from umrl.modules.sac import make_skill_actor, make_skill_qvalue
 from umrl.objectives.diayn import DIAYNLoss, DIAYNUpdate, make_diayn_optimizers
+from umrl.process import tune_process
 from umrl.runtime import (
     Checkpointer,
     check_finite,
@@ -108,8 +108,6 @@ def train(cfg: DictConfig) -> dict:
     ``umrl.configs.RESUME_ALLOW`` is refused."""
     cfg = validate(cfg, DIAYNConfig)
     num_skills = resolve_num_skills(cfg)
-    torch.set_num_threads(cfg.num_threads)
-    keep_freed_memory()
     seed_everything(cfg.seed)
     device = torch.device(resolve_device("device", cfg.device))  # networks, loss, replay storage and envs
     out_dir = Path(cfg.output_dir)
@@ -250,6 +248,7 @@ def train(cfg: DictConfig) -> dict:
 
 @hydra.main(version_base="1.3", config_path="config", config_name="diayn")
 def main(cfg: DictConfig) -> None:
+    tune_process(num_threads=cfg.num_threads)  # this process is the run's: umrl's process-wide settings
     result = train(cfg)
     print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in result.items()})
 

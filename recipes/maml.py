@@ -40,11 +40,12 @@ from omegaconf import DictConfig
 from umrl.checkpoints import MAML_FORMAT, save_maml_checkpoint
 from umrl.configs import check_resume, validate
 from umrl.configs.maml import MAMLConfig
-from umrl.heap import keep_freed_memory
 from umrl.modules.policy import make_gaussian_policy, policy_log_std
 from umrl.objectives.maml import MAMLLoss
-from umrl.objectives.policy_gradient import compute_advantages, episode_returns
+from umrl.objectives.maml_hvp import make_meta_hvp
+from umrl.objectives.policy_gradient import episode_returns
 from umrl.optim.trpo import TRPOStep
+from umrl.process import tune_process
 from umrl.profiling import device_clock
 from umrl.proposals import make_proposal
 from umrl.rollout import check_cudagraphs, collect
@@ -71,11 +72,11 @@ def meta_batch(cfg: DictConfig, proposal, policy, loss: MAMLLoss, generator: tor
     through, under ``learn_context()``), ``query`` the post-update trajectories with them and their advantages;
     ``inner_s`` is the inner step's time."""
     num_tasks, horizon = proposal.num_tasks, cfg.env.horizon
-    adv = {"gamma": cfg.advantage.gamma, "lmbda": cfg.advantage.lmbda, "normalize": cfg.advantage.normalize}
+    advantages = loss.value_estimator
     device = next(policy.parameters()).device
     proposal.resample(generator)
     graphs = {"cudagraphs": cfg.cudagraphs}
-    support = compute_advantages(collect(proposal.env, policy, num_tasks=num_tasks, horizon=horizon, **graphs), **adv)
+    support = advantages(collect(proposal.env, policy, num_tasks=num_tasks, horizon=horizon, **graphs))
     check_finite({"reward": support["next", "reward"]}, "the pre-update rollouts")
     inner_start = device_clock(device)
     with torch.enable_grad(), learn_context():  # the graph (second order unless first_order) is reused below
@@ -83,7 +84,7 @@ def meta_batch(cfg: DictConfig, proposal, policy, loss: MAMLLoss, generator: tor
     check_finite(dict(adapted.items(True, True)), "the adapted parameters (inner step)")
     inner_s = device_clock(device) - inner_start
     query = collect(proposal.env, policy, num_tasks=num_tasks, horizon=horizon, params=adapted.detach(), **graphs)
-    return support, adapted, compute_advantages(query, **adv), inner_s
+    return support, adapted, advantages(query), inner_s
 
 
 def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPOStep, generator: torch.Generator,
@@ -100,7 +101,7 @@ def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPO
     support, adapted, query, inner_s = meta_batch(cfg, proposal, policy, loss, generator, learn_context=learn_context)
     collected = device_clock(device)
     with learn_context():
-        info = meta_step(cfg, loss, trpo, support, query, adapted, generator)
+        info = meta_step(cfg, loss, trpo, support, query, adapted)
     learned = device_clock(device)
 
     reward = support["next", "reward"][support["mask"]]
@@ -129,31 +130,25 @@ def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPO
     return metrics
 
 
-def meta_step(cfg: DictConfig, loss: MAMLLoss, trpo: TRPOStep, support, query, adapted,
-              generator: torch.Generator) -> dict[str, float]:
+def meta_step(cfg: DictConfig, loss: MAMLLoss, trpo: TRPOStep, support, query, adapted) -> dict[str, float]:
     """TRPO's meta-step through the inner step (``adapted``: :func:`meta_batch`'s, with its graph), with the KL
-    Hessian-vector products ``cfg.trpo.hvp`` names on ``cfg.trpo.hvp_fraction`` of the trajectories (drawn by
-    ``generator``); updates the policy in place and returns :class:`~umrl.optim.trpo.TRPOStep`'s numbers."""
-    fraction = cfg.trpo.hvp_fraction
+    Hessian-vector product strategy ``trpo`` was built with (``cfg.trpo.hvp`` on ``cfg.trpo.hvp_fraction`` of the
+    trajectories); updates the policy in place and returns :class:`~umrl.optim.trpo.TRPOStep`'s numbers."""
     with torch.enable_grad():  # the meta-step's first evaluation, through the inner step's graph
-        initial = loss.objective_and_kl(support, query, phi=adapted)
+        first = loss(loss.pack(support, query, adapted))
+    batch = loss.pack(support, query)
 
     def closure():
-        return loss.objective_and_kl(support, query)
+        out = loss(batch)
+        return out["loss_objective"], out["trust_region_kl"]
 
-    if cfg.trpo.hvp in ("gauss_newton", "analytic"):
-        product = loss.gauss_newton_hvp if cfg.trpo.hvp == "gauss_newton" else loss.analytic_gauss_newton_hvp
-        return trpo(closure, initial=initial,
-                    hvp=lambda: product(support, query, fraction=fraction, generator=generator))
-    if fraction < 1:
-        return trpo(closure, lambda: loss.hvp_kl(support, query, fraction=fraction, generator=generator),
-                    initial=initial)
-    return trpo(closure, initial=initial)  # the closure's own KL graph
+    return trpo(closure, batch=batch, initial=(first["loss_objective"], first["trust_region_kl"]))
 
 
-def build(cfg: DictConfig):
+def build(cfg: DictConfig, generator: torch.Generator | None = None):
     """``(proposal, policy, loss, trpo)`` from the config (``benchmarks/meta_iteration.py`` times these too); the
-    policy, the loss, TRPO's state and the proposal's env and discriminator live on ``cfg.device``."""
+    policy, the loss, TRPO's state and the proposal's env and discriminator live on ``cfg.device``. ``generator``
+    draws the Hessian-vector products' trajectory share (``cfg.trpo.hvp_fraction``)."""
     device = torch.device(resolve_device("device", cfg.device))
     proposal = make_proposal(
         cfg.proposal, cfg.env.name, num_tasks=cfg.meta_batch_size, trajectories_per_task=cfg.trajectories_per_task,
@@ -169,7 +164,9 @@ def build(cfg: DictConfig):
     policy = policy.to(device)  # initialised on the CPU: the same weights on every device
     loss = MAMLLoss(policy, inner_lr=cfg.maml.inner_lr, num_inner_steps=cfg.maml.num_inner_steps,
                     first_order=cfg.maml.first_order, task_loop=cfg.maml.task_loop)
-    trpo = TRPOStep(loss.params, max_kl=cfg.trpo.max_kl, damping=cfg.trpo.damping, cg_iters=cfg.trpo.cg_iters,
+    loss.make_value_estimator(gamma=cfg.advantage.gamma, lmbda=cfg.advantage.lmbda, normalize=cfg.advantage.normalize)
+    hvp = make_meta_hvp(cfg.trpo.hvp, loss, fraction=cfg.trpo.hvp_fraction, generator=generator)
+    trpo = TRPOStep(loss.params, hvp=hvp, max_kl=cfg.trpo.max_kl, damping=cfg.trpo.damping, cg_iters=cfg.trpo.cg_iters,
                     backtrack_ratio=cfg.trpo.backtrack_ratio, max_backtracks=cfg.trpo.max_backtracks)
     return proposal, policy, loss, trpo
 
@@ -180,12 +177,10 @@ def train(cfg: DictConfig) -> dict:
     (torch, numpy, python, the task generator) and the env's reset noise: the run finishes bit-identical to an
     uninterrupted one; a config that differs from the checkpoint's beyond ``umrl.configs.RESUME_ALLOW`` is refused."""
     cfg = validate(cfg, MAMLConfig)
-    torch.set_num_threads(cfg.num_threads)
-    keep_freed_memory()
     generator = seed_everything(cfg.seed)
     out_dir = Path(cfg.output_dir)
     checkpointer = Checkpointer(out_dir / "checkpoints", keep_all=cfg.checkpoint.keep_all)
-    proposal, policy, loss, trpo = build(cfg)
+    proposal, policy, loss, trpo = build(cfg, generator)
     env = proposal.env
     obs_dim, act_dim = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
     meta = {
@@ -231,6 +226,7 @@ def train(cfg: DictConfig) -> dict:
 
 @hydra.main(version_base="1.3", config_path="config", config_name="maml")
 def main(cfg: DictConfig) -> None:
+    tune_process(num_threads=cfg.num_threads)  # this process is the run's: umrl's process-wide settings
     result = train(cfg)
     print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in result.items()})
 

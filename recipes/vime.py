@@ -10,8 +10,8 @@ Each iteration: collect ``env.num_envs`` trajectories of ``env.horizon`` steps w
 alone: the CMP's reward is zero) -> add them to the dynamics model's FIFO replay (a TorchRL ``ReplayBuffer`` over a
 ``LazyTensorStorage``; a share goes to a held-out one) ->
 update the running input/target statistics and train the model (:class:`~umrl.objectives.vime.VIMELoss`, Adam) ->
-one TRPO step (:class:`umrl.optim.trpo.TRPOStep`) on the importance-ratio surrogate (``MAMLLoss``'s outer
-objective with no inner step) with linear-baseline GAE advantages
+one TRPO step (:class:`umrl.optim.trpo.TRPOStep`) on the importance-ratio surrogate
+(:class:`~umrl.objectives.trpo_surrogate.ImportanceSamplingLoss`) with linear-baseline GAE advantages
 (:func:`umrl.objectives.policy_gradient.compute_advantages`).
 
 Logged (namespaced): ``bonus/`` info gain and bonus statistics; ``dynamics/`` training loss, log-likelihood, KL to
@@ -36,20 +36,19 @@ import hydra
 import torch
 import tqdm
 from omegaconf import DictConfig
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyTensorStorage, ReplayBuffer, TensorDictReplayBuffer
 
 from umrl.checkpoints import VIME_FORMAT, save_vime_checkpoint
 from umrl.configs import check_resume, validate
 from umrl.configs.vime import VIMEConfig
 from umrl.envs import get_env_spec, make_env
-from umrl.heap import keep_freed_memory
 from umrl.modules.bnn import BayesianDynamics
 from umrl.modules.policy import make_gaussian_policy
-from umrl.objectives.maml import MAMLLoss
-from umrl.objectives.policy_gradient import compute_advantages
+from umrl.objectives.trpo_surrogate import ImportanceSamplingLoss
 from umrl.objectives.vime import VIMELoss
 from umrl.optim.trpo import TRPOStep
+from umrl.process import tune_process
 from umrl.rollout import collect
 from umrl.runtime import (
     Checkpointer,
@@ -71,11 +70,15 @@ from umrl.validation import resolve_device
 TRANSITION_KEYS = ("observation", "action", ("next", "observation"))
 
 
-def trpo_update(trpo: TRPOStep, loss: MAMLLoss, batch: TensorDictBase) -> dict[str, float]:
+def trpo_update(trpo: TRPOStep, loss: ImportanceSamplingLoss, batch: TensorDictBase) -> dict[str, float]:
     """One TRPO step on the importance-ratio surrogate ``-mean(ratio * advantage)`` with the mean KL(old || new)
-    over the valid steps: ``MAMLLoss``'s outer objective with no inner step (``batch`` is one task's ``[N, H]``)."""
-    task = batch.unsqueeze(0)  # [1, N, H]: the support and the query of a single task
-    return trpo(lambda: loss.objective_and_kl(task, task))
+    over the valid steps (``batch`` is one task's ``[N, H]``)."""
+
+    def closure():
+        out = loss(batch)
+        return out["loss_objective"], out["trust_region_kl"]
+
+    return trpo(closure)
 
 
 def train_dynamics(loss_fn: VIMELoss, optimizer, replay: ReplayBuffer, cfg: DictConfig) -> dict[str, float]:
@@ -110,8 +113,6 @@ def train(cfg: DictConfig) -> dict:
     finishes bit-identical to an uninterrupted run; a config that differs from the checkpoint's beyond
     ``umrl.configs.RESUME_ALLOW`` is refused."""
     cfg = validate(cfg, VIMEConfig)
-    torch.set_num_threads(cfg.num_threads)
-    keep_freed_memory()
     seed_everything(cfg.seed)
     device = torch.device(resolve_device("device", cfg.device))  # networks, replay storage, env outputs
     out_dir = Path(cfg.output_dir)
@@ -130,9 +131,10 @@ def train(cfg: DictConfig) -> dict:
     optimizer = torch.optim.Adam(dynamics.parameters(), lr=dyn.lr)
     bonus = VIMEBonus(dynamics, eta=cfg.bonus.eta, num_samples=cfg.bonus.num_samples,
                       median_window=cfg.bonus.median_window).to(device)
-    surrogate = MAMLLoss(policy, num_inner_steps=0)  # TRPO's surrogate: MAML's outer objective, no inner step
+    surrogate = ImportanceSamplingLoss(policy)
     t = cfg.trpo
-    trpo = TRPOStep(surrogate.params, max_kl=t.max_kl, damping=t.damping, cg_iters=t.cg_iters,
+    surrogate.make_value_estimator(gamma=t.gamma, lmbda=t.gae_lambda)
+    trpo = TRPOStep(TensorDict.from_module(policy), max_kl=t.max_kl, damping=t.damping, cg_iters=t.cg_iters,
                     backtrack_ratio=t.backtrack_ratio, max_backtracks=t.max_backtracks)
     meta = {"env": cfg.env.name, "obs_dim": obs_dim, "act_dim": act_dim, "policy_hidden": list(cfg.policy.hidden),
             "policy_init_std": cfg.policy.init_std, "dynamics_hidden": list(dyn.hidden),
@@ -203,7 +205,7 @@ def train(cfg: DictConfig) -> dict:
         dynamics_s = time.perf_counter() - tic
 
         tic = time.perf_counter()
-        compute_advantages(batch, gamma=t.gamma, lmbda=t.gae_lambda)
+        surrogate.value_estimator(batch)
         trpo_info = trpo_update(trpo, surrogate, batch)
         policy_s = time.perf_counter() - tic
 
@@ -248,6 +250,7 @@ def train(cfg: DictConfig) -> dict:
 
 @hydra.main(version_base="1.3", config_path="config", config_name="vime")
 def main(cfg: DictConfig) -> None:
+    tune_process(num_threads=cfg.num_threads)  # this process is the run's: umrl's process-wide settings
     result = train(cfg)
     print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in result.items()})
 

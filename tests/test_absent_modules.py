@@ -44,9 +44,11 @@ def test_tensordict_module_outputs_no_longer_search_the_path(monkeypatch):
     assert searches == []
 
 
-def test_importing_umrl_marks_absent_packages():
-    """Every process that uses umrl gets the marker (recipes, suite workers, benchmarks, user scripts)."""
-    probe = ("import importlib.util, sys; installed = importlib.util.find_spec('pandas') is not None; import umrl; "
+def test_process_tuning_marks_absent_packages():
+    """Every process umrl's command lines own gets the marker (recipes, suite workers, benchmarks) through
+    :func:`umrl.process.tune_process`; importing umrl alone does not (tests/test_process.py)."""
+    probe = ("import importlib.util, sys; installed = importlib.util.find_spec('pandas') is not None; "
+             "from umrl.process import tune_process; tune_process(keep_freed_memory=False); "
              "print(installed or sys.modules.get('pandas', 'unmarked') is None)")
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "True"

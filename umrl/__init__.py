@@ -5,9 +5,6 @@ their registry, task families), :mod:`umrl.transforms`, :mod:`umrl.modules`, :mo
 :mod:`umrl.optim`, :mod:`umrl.rollout`, :mod:`umrl.checkpoints`, :mod:`umrl.metatest`; the training recipes are the
 ``recipes`` package.
 
-Importing umrl records absent optional packages that a dependency looks up on every module call
-(:mod:`umrl.absent_modules`).
+Importing umrl changes nothing process-wide; the process tuning umrl's command lines apply is opt-in
+(:mod:`umrl.process`).
 """
-from umrl.absent_modules import mark_absent_modules
-
-mark_absent_modules()

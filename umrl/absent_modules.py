@@ -8,9 +8,9 @@ again (a few directory look-ups): two per policy call while collecting, about te
 
 :func:`mark_absent_modules` records each absent package as ``None`` in ``sys.modules``, Python's own marker for "not
 importable": ``find_spec`` then answers ``None`` at once and ``import pandas`` raises ``ModuleNotFoundError`` as
-before. Installed packages are left alone, so nothing changes where pandas is present. ``import umrl`` applies it,
-so every process that uses umrl's modules (recipes, meta-test workers, benchmarks, a user's own script) has it; a
-package installed later in the same process is importable only after a restart.
+before. Installed packages are left alone, so nothing changes where pandas is present. It is process-wide, so umrl applies
+it only where it owns the process (:func:`umrl.process.tune_process`: the recipes' command lines, the suite's
+workers, the benchmarks); a package installed later in the same process is importable only after a restart.
 """
 from __future__ import annotations
 

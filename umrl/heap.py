@@ -9,7 +9,8 @@ and trim thresholds (``mallopt``) so large blocks come from the heap and stay th
 unchanged (only where tensors live changes).
 
 The price is resident memory: the heap keeps its high-water mark and fragments, so a process's peak RSS grows
-(measured in the README). Every umrl run applies it at start (the recipes' ``train``, each meta-test cell). To keep
+(measured in the README). umrl's command lines and the suite's workers apply it at start
+(:func:`umrl.process.tune_process`); library calls never do. To keep
 glibc's behaviour or choose your own, set glibc's own ``MALLOC_MMAP_THRESHOLD_`` / ``MALLOC_TRIM_THRESHOLD_`` or a
 ``glibc.malloc`` entry of ``GLIBC_TUNABLES`` in the environment: umrl then leaves ``malloc`` alone.
 """

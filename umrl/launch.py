@@ -18,6 +18,8 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from umrl.process import tuned_call
+
 __all__ = ["InlineLauncher", "Job", "JobError", "LocalLauncher", "RayLauncher", "failure_message", "log_tail",
            "make_launcher", "run_jobs"]
 
@@ -76,6 +78,8 @@ class InlineLauncher:
 
 _WORKER = """
 import os, pickle, sys, traceback
+from umrl.process import tune_process
+tune_process(num_threads=int(sys.argv[2]))
 tasks, results = os.fdopen(0, "rb"), os.fdopen(int(sys.argv[1]), "wb")
 while True:
     try:
@@ -92,16 +96,17 @@ while True:
     sys.stdout.flush(); sys.stderr.flush()
     pickle.dump(result, results); results.flush()
 """
-"""A worker process: read ``(fn, args, kwargs, log)`` pickles from stdin, run each with its output appended to
+"""A worker process: apply umrl's process tuning (:func:`umrl.process.tune_process`, ``threads`` torch threads),
+read ``(fn, args, kwargs, log)`` pickles from stdin, run each with its output appended to
 ``log``, write ``(ok, result or "Type: message")`` pickles to the result pipe; exit at EOF."""
 
 
 class _Worker:
     """One worker process of :class:`LocalLauncher` and its two pipes."""
 
-    def __init__(self, cwd: Path, env: Mapping[str, str]):
+    def __init__(self, cwd: Path, env: Mapping[str, str], threads: int):
         read, write = os.pipe()
-        self.process = subprocess.Popen([sys.executable, "-c", _WORKER, str(write)], cwd=cwd, env=dict(env),
+        self.process = subprocess.Popen([sys.executable, "-c", _WORKER, str(write), str(threads)], cwd=cwd, env=dict(env),
                                         stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                                         pass_fds=(write,))
         os.close(write)
@@ -140,7 +145,7 @@ class LocalLauncher:
     """
 
     def __init__(self, workers: int, *, threads: int = 1, cwd: str | os.PathLike = "."):
-        self.slots, self.cwd = workers, Path(cwd)
+        self.slots, self.cwd, self.threads = workers, Path(cwd), threads
         self.env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads),
                     "PYTHONPATH": os.pathsep.join(filter(None, [str(SOURCE_ROOT), os.environ.get("PYTHONPATH")]))}
         self.pool = cf.ThreadPoolExecutor(max_workers=workers)
@@ -154,7 +159,7 @@ class LocalLauncher:
     def _run(self, job: Job):
         with self.lock:
             worker = None if job.fresh or not self.idle else self.idle.pop()
-        worker = worker or _Worker(self.cwd, self.env)
+        worker = worker or _Worker(self.cwd, self.env, self.threads)
         with self.lock:
             self.busy.add(worker)
         log = job.log or self.cwd / "logs" / "jobs.log"
@@ -196,7 +201,8 @@ class RayLauncher:
         self.slots = max(1, int(ray.cluster_resources().get("CPU", 1) // cpus_per_job))
 
     def submit(self, job: Job) -> cf.Future:
-        return self.ray.remote(num_cpus=self.cpus)(job.fn).remote(*job.args, **job.kwargs).future()
+        threads = max(1, int(self.cpus))  # each task tunes its worker process as the local launcher's workers do
+        return self.ray.remote(num_cpus=self.cpus)(tuned_call).remote(job.fn, threads, *job.args, **job.kwargs).future()
 
     def shutdown(self) -> None:  # the Ray instance belongs to whoever started it
         return None

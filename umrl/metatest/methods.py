@@ -20,7 +20,6 @@ from tensordict.nn import TensorDictModuleBase
 
 from umrl.envs import get_env_spec
 from umrl.envs.tasks import get_task_family
-from umrl.heap import keep_freed_memory
 from umrl.metatest.cache import write_json_atomic
 from umrl.metatest.protocol import (
     AdaptationConfig,
@@ -299,8 +298,6 @@ def run_cell(spec: CellSpec) -> str:
     if output.exists():
         return str(output)
     device = torch.device(resolve_device("device", spec.device))
-    torch.set_num_threads(spec.threads)
-    keep_freed_memory()
     start = time.perf_counter()
     config = spec.protocol
     init = load_initialisation(spec.method, spec.env, spec.checkpoint, seed=spec.seed, device=device)
