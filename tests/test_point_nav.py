@@ -1,4 +1,4 @@
-"""point_nav: PROTOCOL.md semantics, specs, partial resets."""
+"""point_nav: docs/protocol.md semantics, specs, partial resets."""
 import re
 
 import pytest

@@ -36,7 +36,7 @@ def test_half_cheetah_goal_velocity_reward_by_hand():
     assert not torch.allclose(rollout["next", "reward"], rollout["next", "env_reward"])
 
 
-# (env, per-step offset, survive weight, control weight): PROTOCOL.md's ant, and the MAML reference code's reward
+# (env, per-step offset, survive weight, control weight): docs/protocol.md's ant, and the MAML reference code's reward
 @pytest.mark.parametrize(("name", "offset", "survive", "ctrl_weight"),
                          [("ant", 0.0, 1.0, 0.5), ("ant_maml_reward", 4.0, 0.05, 0.005)])
 def test_ant_goal_position_reward_by_hand(name, offset, survive, ctrl_weight):

@@ -116,7 +116,7 @@ def make_proposal(
 
     Keyword Args:
         num_tasks: meta-batch ``T``; ``None``: the number of skills (diayn/random) or the env's
-            :attr:`~umrl.envs.EnvSpec.num_skills` (oracle), i.e. PROTOCOL.md's 50/20/20.
+            :attr:`~umrl.envs.EnvSpec.num_skills` (oracle), i.e. docs/protocol.md's 50/20/20.
         trajectories_per_task: ``N`` env copies per task.
         seed: seeds the env and the random discriminator's weights.
         horizon: episode length.

@@ -1,4 +1,4 @@
-"""The built-in environments, one :class:`~umrl.envs.registry.EnvSpec` record each (PROTOCOL.md settings).
+"""The built-in environments, one :class:`~umrl.envs.registry.EnvSpec` record each (docs/protocol.md settings).
 
 ==============  =======  =======  ======  ====================  ===========================================
 env             obs_dim  act_dim  skills  tasks                 coverage
@@ -8,7 +8,7 @@ half_cheetah    17       6        20      speeds U[0, 2]        mean ``"x_veloci
 ant             107      8        20      goals U[-3, 3]²       final ``"xy_position"``, 0.25 cells
 ==============  =======  =======  ======  ====================  ===========================================
 
-``ant_maml_reward`` (an ablation, not in PROTOCOL.md) is ``ant`` with the MAML reference code's goal reward
+``ant_maml_reward`` (an ablation, not in docs/protocol.md) is ``ant`` with the MAML reference code's goal reward
 (:data:`umrl.envs.tasks.ant_goal_reward_maml_code`): the same CMP, skills, tasks and evaluation goals, so DIAYN and
 UML runs of ``ant`` serve it unchanged (the suite's ``pretrain.<recipe>.reuse``).
 """

@@ -2,7 +2,7 @@
 
 All ``B`` copies step in one tensor operation; there is no Python loop over copies.
 
-Semantics (PROTOCOL.md): the point starts at (0, 0); the action is clipped to [-1, 1]² and scaled by 0.1, so a step
+Semantics (docs/protocol.md): the point starts at (0, 0); the action is clipped to [-1, 1]² and scaled by 0.1, so a step
 moves at most 0.1 per axis; the position is unbounded unless ``arena=a`` clips it to [-a, a]² after every step (an
 ablation used only in meta-training, see :mod:`umrl.proposals`: ``random_arena``). The CMP has no reward: ``("next", "reward")`` is zero and
 task rewards are written by :class:`~umrl.transforms.task_reward.TaskReward`. The horizon (100) is a

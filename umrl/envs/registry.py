@@ -34,7 +34,7 @@ class EnvSpec:
             limit (``make_env`` adds the horizon), zero ``("next", "reward")``, float32 ``"observation"``
             ``[B, obs_dim]``, an ``"action"`` in ``[-1, 1]^act_dim`` and the :attr:`physics_keys` at every step.
         obs_dim, act_dim: observation and action sizes.
-        num_skills: DIAYN's default skill count, which is also MAML's default meta-batch (PROTOCOL.md: 50/20/20).
+        num_skills: DIAYN's default skill count, which is also MAML's default meta-batch (docs/protocol.md: 50/20/20).
         task_family: the hand-designed tasks (oracle meta-training, meta-test) and their reward.
         physics_keys: ``{key: width}`` written into every step's ``"next"`` (what task rewards and coverage read).
         coverage_key: the physics key whose values show where the agent went (x-y position, forward velocity).

@@ -2,7 +2,7 @@
 
 A task is a row vector of parameters (``task_dim`` floats); each env copy carries its own. A family is part of its
 env's record (:class:`umrl.envs.registry.EnvSpec`); :func:`get_task_family` reads it from there. Rewards follow
-PROTOCOL.md and are computed from the physics keys that every env writes into ``"next"``:
+docs/protocol.md and are computed from the physics keys that every env writes into ``"next"``:
 
 ================  ==========  ============================  ===========================================================
 env               task_dim    family                        reward
@@ -13,7 +13,7 @@ ant               2 (goal)    U[-3, 3]²                     −‖xy − g‖�
 ant_maml_reward   2 (goal)    U[-3, 3]²                     −‖xy − g‖₁ + 4 + 0.05 healthy + contact reward − 0.005‖a‖²
 ================  ==========  ============================  ===========================================================
 
-``ant_maml_reward`` is not in PROTOCOL.md: the same Ant-v5 CMP with the goal reward of the MAML reference code, an
+``ant_maml_reward`` is not in docs/protocol.md: the same Ant-v5 CMP with the goal reward of the MAML reference code, an
 ablation of the protocol's ant reward (see :data:`ant_goal_reward_maml_code`).
 
 Actions enter the control costs clipped to the action bounds [-1, 1], i.e. as the simulator applied them.
@@ -130,7 +130,7 @@ class AntGoalReward:
         return -distance + alive + next_td["reward_contact"] - self.ctrl_weight * control_cost(action)
 
 
-#: PROTOCOL.md's ant reward: gymnasium Ant-v5's healthy reward and costs. Every step's reward is negative almost
+#: docs/protocol.md's ant reward: gymnasium Ant-v5's healthy reward and costs. Every step's reward is negative almost
 #: everywhere (about -2 standing still on the evaluation goals), so an episode that ends early scores higher.
 ant_goal_reward = AntGoalReward()
 #: The MAML reference code's ant goal reward (cbfinn/maml_rl ``rllab/envs/mujoco/ant_env_rand_goal.py``): +4 per

@@ -1,4 +1,4 @@
-"""The meta-test adaptation protocol shared by every method (PROTOCOL.md, "Meta-test").
+"""The meta-test adaptation protocol shared by every method (docs/protocol.md, "Meta-test").
 
 For a policy initialisation and a set of held-out tasks ``[T, task_dim]``:
 
@@ -64,7 +64,7 @@ def sgd_lr_factor(schedule: str, step: int, later_factor: float = 0.5) -> float:
 
 @dataclass(frozen=True)
 class AdaptationConfig:
-    """The meta-test protocol's knobs (PROTOCOL.md defaults).
+    """The meta-test protocol's knobs (docs/protocol.md defaults).
 
     Attributes:
         num_steps: ``K``, the number of updates; returns are recorded at ``k = 0 … K``.

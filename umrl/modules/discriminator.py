@@ -52,7 +52,7 @@ def make_discriminator(
         num_skills (int): K >= 2, the number of logits.
 
     Keyword Args:
-        hidden (sequence of int): hidden layer widths. Defaults to ``(300, 300)`` (PROTOCOL.md).
+        hidden (sequence of int): hidden layer widths. Defaults to ``(300, 300)`` (docs/protocol.md).
         seed (int, optional): if given, the weights are initialised from ``torch.manual_seed(seed)`` inside a forked
             RNG (the global RNG is untouched), so a frozen random discriminator (UML-random) is reproducible.
         init (str): weight initialisation, one of :data:`DISCRIMINATOR_INITS`. Defaults to ``"xavier"`` (the DIAYN
