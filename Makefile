@@ -21,7 +21,7 @@ test: $(STAMP)
 	WANDB_MODE=disabled $(BIN)/python -m pytest -q tests
 
 lint: $(STAMP)
-	$(BIN)/ruff check umrl recipes benchmarks tests
+	$(BIN)/ruff check umrl recipes benchmarks scripts examples tests
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/throughput.py

@@ -8,8 +8,8 @@
     python benchmarks/meta_iteration.py --device auto --threads 16 --hvp-fraction 0.1 --repeats 5
     python benchmarks/meta_iteration.py --device cuda --collection eager cudagraphs   # collection replayed from a CUDA graph
 
-One meta-iteration is the MAML recipe's own (``recipes.maml.build`` and ``recipes.maml.meta_iteration`` on the
-composed ``recipes/config/maml.yaml`` with the preset's overrides, oracle tasks): pre-update collection with θ and
+One meta-iteration is the MAML recipe's own (``umrl.trainers.maml.build`` and ``umrl.trainers.maml.meta_iteration`` on the
+composed ``umrl/configs/maml.yaml`` with the preset's overrides, oracle tasks): pre-update collection with θ and
 advantages, the inner adaptation (with the graph the meta-step reuses), post-update collection with every task's
 adapted parameters ("collect" = both collections and advantages), then the TRPO meta-step ("learn" = inner
 adaptation + TRPO step). A second line splits "learn" into the recipe's ``time/`` parts: the inner adaptation, the
@@ -39,13 +39,13 @@ import statistics
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-from recipes import compose
-from recipes.maml import build, meta_iteration
 from umrl.configs import validate
 from umrl.configs.maml import HVP_MODES, MAMLConfig
 from umrl.process import tune_process
 from umrl.profiling import flop_counter, matmul_rate
 from umrl.runtime import rng_state, seed_everything, set_rng_state
+from umrl.trainers import compose
+from umrl.trainers.maml import build, meta_iteration
 
 PRESETS = {  # recipe overrides (env.horizon stays the recipe's 100)
     "reference": ["env.name=point_nav", "meta_batch_size=40", "trajectories_per_task=20", "policy.hidden=[100,100]",

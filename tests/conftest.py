@@ -39,8 +39,8 @@ def tiny_diayn_checkpoint(tmp_path, request):
 def tiny_maml_run(tmp_path):
     """A one-iteration oracle MAML run on point_nav (2 tasks × 2 trajectories, horizon 10, one 16-unit layer) in
     ``tmp_path / "maml"``; returns the run directory."""
-    from recipes import compose
-    from recipes.maml import train
+    from umrl.trainers import compose
+    from umrl.trainers.maml import train
 
     directory = tmp_path / "maml"
     train(compose("maml", ["proposal=oracle", "iterations=1", "meta_batch_size=2", "trajectories_per_task=2",

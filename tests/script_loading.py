@@ -1,5 +1,5 @@
-"""Helpers for tests of the Hydra scripts in benchmarks/: import a script, compose its config (recipes are a package:
-``from recipes import compose``)."""
+"""Helpers for tests of the Hydra scripts in benchmarks/ and recipes/: import a script, compose its config (the
+trainers' configs compose from the library: ``from umrl.trainers import compose``)."""
 import importlib.util
 import sys
 from pathlib import Path
@@ -7,7 +7,7 @@ from pathlib import Path
 from hydra import compose
 from omegaconf import DictConfig
 
-from recipes import config_dir
+from umrl.trainers import config_dir
 
 REPO = Path(__file__).resolve().parents[1]
 

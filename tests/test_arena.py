@@ -4,9 +4,9 @@ import math
 
 import pytest
 import torch
-from script_loading import compose_config, load_script
+from script_loading import compose_config
 
-from recipes import compose
+from umrl import suite
 from umrl.checkpoints import load_maml_checkpoint
 from umrl.configs import ConfigError, validate
 from umrl.configs.maml import MAMLConfig
@@ -14,8 +14,7 @@ from umrl.envs import make_env
 from umrl.envs.point_nav import ACTION_SCALE, PointNavEnv
 from umrl.metatest import METHODS, read_rows
 from umrl.proposals import RANDOM_ARENA, make_proposal
-
-suite = load_script("benchmarks/suite.py")
+from umrl.trainers import compose
 
 
 def _positions(env, actions: torch.Tensor) -> torch.Tensor:

@@ -118,7 +118,7 @@ def _ended_batch(**next_keys):
 def test_episode_stats_counts_first_episodes_and_ant_jumps(env_name):
     from script_loading import load_script
 
-    bench = load_script("benchmarks/episode_lengths.py")
+    bench = load_script("scripts/diagnostics/episode_lengths.py")
     observation = torch.zeros(1, 2, 3, 107)
     observation[0, 0, 1, 2] = 1.2  # copy 0 ends at step 1 with its torso above 1.0 (a jump), copy 1 at step 2 (below)
     xy = torch.zeros(1, 2, 3, 2)
@@ -133,7 +133,7 @@ def test_episode_stats_counts_first_episodes_and_ant_jumps(env_name):
 def test_episode_stats_end_error_of_a_velocity_task_uses_the_mean_velocity():
     from script_loading import load_script
 
-    bench = load_script("benchmarks/episode_lengths.py")
+    bench = load_script("scripts/diagnostics/episode_lengths.py")
     velocity = torch.tensor([[[1.0], [3.0], [9.0]], [[0.0], [1.0], [2.0]]])[None]  # copy 0's step 2 is past its end
     batch = _ended_batch(x_velocity=velocity)
     batch["task"] = torch.full((1, 2, 3, 1), 1.5)
@@ -177,7 +177,7 @@ def test_action_noise_adapts_like_the_suite_and_replaces_only_the_log_std(tiny_m
     from umrl.metatest import AdaptationConfig, load_initialisation, meta_test
     from umrl.modules import policy_log_std
 
-    bench = load_script("benchmarks/action_noise.py")
+    bench = load_script("scripts/diagnostics/action_noise.py")
     config = AdaptationConfig(num_steps=2, num_trajectories=3, horizon=10, sgd_schedule="reference")
     tasks = get_task_family("point_nav").eval_tasks(2)
     saved, returns = bench.adapt(str(tiny_maml_run), None, env="point_nav", tasks=tasks, seed=1, config=config)
@@ -206,13 +206,13 @@ def test_kl_hessian_fraction_steps_from_one_batch_and_undoes_each_step(tmp_path,
     fraction outside (0, 1] is refused."""
     from script_loading import load_script
 
-    from recipes import compose
-    from recipes.maml import train
+    from umrl.trainers import compose
+    from umrl.trainers.maml import train
 
     train(compose("maml", ["proposal=oracle", "iterations=1", "meta_batch_size=3", "trajectories_per_task=4",
                            "env.horizon=10", "policy.hidden=[16]", "logger.backend=none", "progress=false",
                            f"output_dir={tmp_path}"]))
-    bench = load_script("benchmarks/kl_hessian_fraction.py")
+    bench = load_script("scripts/diagnostics/kl_hessian_fraction.py")
     rows = bench.compare_steps(str(tmp_path), from_init=False, seed=0, fractions=[1.0, 1.0, 0.5], draws=2,
                                threads=1, skills=None)
     assert [(r["fraction"], r["draw"]) for r in rows] == [(1.0, 0), (1.0, 0), (0.5, 0), (0.5, 1)]
@@ -245,7 +245,7 @@ def test_step_size_reproduces_the_suites_update_at_its_own_scale(tiny_maml_run, 
     from umrl.envs.tasks import get_task_family
     from umrl.metatest import AdaptationConfig, load_initialisation, meta_test
 
-    bench = load_script("benchmarks/step_size.py")
+    bench = load_script("scripts/diagnostics/step_size.py")
     config = AdaptationConfig(num_steps=2, num_trajectories=3, horizon=10, sgd_schedule="reference")
     tasks = get_task_family("point_nav").eval_tasks(2)
     init = load_initialisation("oracle", "point_nav", tiny_maml_run, seed=1)
@@ -275,7 +275,7 @@ def test_step_size_decomposition_rebuilds_both_updates_from_their_pushes(tiny_ma
     from umrl.envs.tasks import get_task_family
     from umrl.metatest import AdaptationConfig
 
-    bench = load_script("benchmarks/step_size.py")
+    bench = load_script("scripts/diagnostics/step_size.py")
     config = AdaptationConfig(num_steps=2, num_trajectories=3, horizon=10, sgd_schedule="reference")
     tasks = get_task_family("point_nav").eval_tasks(2)
     out = bench.decompose(str(tiny_maml_run), env_name="point_nav", tasks=tasks, seed=1, config=config)
@@ -325,12 +325,12 @@ def test_action_noise_refuses_a_later_factor_the_protocol_refuses(capsys):
     from script_loading import load_script
 
     with pytest.raises(SystemExit):
-        load_script("benchmarks/action_noise.py").main(["--run", "x=y", "--schedule", "swept", "--later-factor", "0"])
+        load_script("scripts/diagnostics/action_noise.py").main(["--run", "x=y", "--schedule", "swept", "--later-factor", "0"])
     assert "protocol.sgd_later_factor: got 0.0; expected a finite number > 0" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("script", ["benchmarks/action_noise.py", "benchmarks/kl_hessian_fraction.py",
-                                    "benchmarks/step_size.py"])
+@pytest.mark.parametrize("script", ["scripts/diagnostics/action_noise.py", "scripts/diagnostics/kl_hessian_fraction.py",
+                                    "scripts/diagnostics/step_size.py"])
 @pytest.mark.parametrize("spec", ["no-label", "=path", "label="])
 def test_run_options_refuse_a_value_without_label_and_path(script, spec, capsys):
     from script_loading import load_script

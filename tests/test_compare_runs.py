@@ -1,4 +1,4 @@
-"""benchmarks/compare_runs.py: one arm from each of several results files, AUC per horizon, one figure."""
+"""scripts/diagnostics/compare_runs.py: one arm from each of several results files, AUC per horizon, one figure."""
 import runpy
 import sys
 from pathlib import Path

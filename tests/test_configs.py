@@ -25,7 +25,7 @@ PROFILES = sorted(p.stem for p in (REPO / "benchmarks/config/profile").glob("*.y
 def compose(name: str, overrides=()):
     if name == "suite":
         return compose_config("benchmarks/config", "suite", overrides)
-    return compose_config("recipes/config", name, overrides)
+    return compose_config("umrl/configs", name, overrides)
 
 
 def schema_keys(schema: type, prefix: str = "") -> set[str]:
@@ -59,7 +59,7 @@ def load_yaml(relative: str) -> dict:
 
 @pytest.mark.parametrize("name", list(SCHEMAS))
 def test_yaml_keys_equal_schema_keys(name):
-    path = "benchmarks/config/suite.yaml" if name == "suite" else f"recipes/config/{name}.yaml"
+    path = "benchmarks/config/suite.yaml" if name == "suite" else f"umrl/configs/{name}.yaml"
     assert yaml_keys(load_yaml(path), SCHEMAS[name]) == schema_keys(SCHEMAS[name])
 
 
@@ -70,7 +70,7 @@ def test_profile_keys_are_schema_keys_with_valid_values(profile):
     assert check_partial(values, SuiteConfig) == []
 
 
-@pytest.mark.parametrize("path", [*(f"recipes/config/{name}.yaml" for name in RECIPES), "benchmarks/config/suite.yaml"])
+@pytest.mark.parametrize("path", [*(f"umrl/configs/{name}.yaml" for name in RECIPES), "benchmarks/config/suite.yaml"])
 def test_env_lists_in_config_comments_are_the_registered_envs(path):
     """The comments beside ``env.name`` / ``envs`` list every registered env, and only those."""
     comments = [line.split("#", 1)[1] for line in (REPO / path).read_text().splitlines()

@@ -10,10 +10,9 @@ import pytest
 import torch
 from tensordict import TensorDictBase
 
-import recipes.diayn
-import recipes.maml
-import recipes.vime
-from recipes import compose
+import umrl.trainers.diayn
+import umrl.trainers.maml
+import umrl.trainers.vime
 from umrl.checkpoints import load_maml_policy
 from umrl.envs import make_env, make_task_env
 from umrl.metatest import methods as metatest_methods
@@ -23,6 +22,7 @@ from umrl.modules.policy import make_gaussian_policy
 from umrl.modules.sac import make_skill_actor
 from umrl.proposals import make_proposal
 from umrl.rollout import collect
+from umrl.trainers import compose
 
 CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 DEVICES = ["cpu", pytest.param("cuda", marks=CUDA)]
@@ -98,12 +98,12 @@ def test_proposal_env_discriminator_and_batches_on_the_device(device, name):
 @pytest.mark.parametrize("device", DEVICES)
 def test_maml_recipe_keeps_everything_on_the_device(tmp_path, device, monkeypatch):
     seen = {}
-    capture(monkeypatch, recipes.maml, "build", seen)
-    capture(monkeypatch, recipes.maml, "collect", seen)
+    capture(monkeypatch, umrl.trainers.maml, "build", seen)
+    capture(monkeypatch, umrl.trainers.maml, "collect", seen)
     cfg = compose("maml", [f"device={device}", "env.horizon=5", "meta_batch_size=2", "trajectories_per_task=2",
                            "policy.hidden=[8]", "logger.backend=none", "progress=false", "trpo.cg_iters=2",
                            "iterations=1", f"output_dir={tmp_path}"])
-    recipes.maml.train(cfg)
+    umrl.trainers.maml.train(cfg)
     proposal, policy, loss, trpo = seen["build"][0][2]
     assert_on(device, policy=policy, loss=loss, trpo=vars(trpo), env=proposal.env.transform,
               batches=[result for _, _, result in seen["collect"]])
@@ -112,16 +112,16 @@ def test_maml_recipe_keeps_everything_on_the_device(tmp_path, device, monkeypatc
 @pytest.mark.parametrize("device", DEVICES)
 def test_diayn_recipe_keeps_everything_on_the_device(tmp_path, device, monkeypatch):
     seen = {}
-    capture(monkeypatch, recipes.diayn, "save_diayn_checkpoint", seen)
-    capture(monkeypatch, recipes.diayn, "TensorDictReplayBuffer", seen)
-    capture(monkeypatch, recipes.diayn, "evaluate_skills", seen)
+    capture(monkeypatch, umrl.trainers.diayn, "save_diayn_checkpoint", seen)
+    capture(monkeypatch, umrl.trainers.diayn, "TensorDictReplayBuffer", seen)
+    capture(monkeypatch, umrl.trainers.diayn, "evaluate_skills", seen)
     cfg = compose("diayn", [
         f"device={device}", "logger.backend=none", "progress=false", f"output_dir={tmp_path}", "num_skills=3",
         "env.num_envs=4", "env.horizon=5", "collector.frames_per_batch=20", "collector.total_frames=40",
         "collector.init_random_frames=20", "optim.updates_per_frame=0.1", "network.hidden=[8]",
         "network.discriminator_hidden=[8]", "replay_buffer.batch_size=8", "eval.every=40",
         "eval.episodes_per_skill=1", "checkpoint.every=40"])
-    recipes.diayn.train(cfg)
+    umrl.trainers.diayn.train(cfg)
     saved = seen["save_diayn_checkpoint"][-1][1]
     assert all(opt.state for opt in saved["optimizers"].values()), "the optimisers took no step"
     buffer = seen["TensorDictReplayBuffer"][0][2]
@@ -134,13 +134,13 @@ def test_diayn_recipe_keeps_everything_on_the_device(tmp_path, device, monkeypat
 @pytest.mark.parametrize("device", DEVICES)
 def test_vime_recipe_keeps_everything_on_the_device(tmp_path, device, monkeypatch):
     seen = {}
-    capture(monkeypatch, recipes.vime, "save_vime_checkpoint", seen)
-    capture(monkeypatch, recipes.vime, "collect", seen)
+    capture(monkeypatch, umrl.trainers.vime, "save_vime_checkpoint", seen)
+    capture(monkeypatch, umrl.trainers.vime, "collect", seen)
     cfg = compose("vime", [
         f"device={device}", "logger.backend=none", "progress=false", f"output_dir={tmp_path}", "iterations=1",
         "env.num_envs=4", "env.horizon=5", "policy.hidden=[8]", "dynamics.updates_per_iteration=2",
         "dynamics.batch_size=4", "dynamics.holdout_fraction=0.25", "checkpoint.every=1"])
-    recipes.vime.train(cfg)
+    umrl.trainers.vime.train(cfg)
     saved = seen["save_vime_checkpoint"][-1][1]
     assert saved["dynamics_optimizer"].state, "the dynamics model took no step"
     assert_on(device, **{k: saved[k] for k in ("policy", "dynamics", "dynamics_optimizer", "median_history",
@@ -180,7 +180,7 @@ def test_a_checkpoint_written_on_a_gpu_loads_on_the_cpu(tmp_path, monkeypatch):
                            "logger.backend=none", "progress=false", "iterations=1", "trpo.cg_iters=2",
                            f"output_dir={tmp_path}"])
     monkeypatch.setattr(torch.serialization, "location_tag", lambda storage: "cuda:0")
-    recipes.maml.train(cfg)
+    umrl.trainers.maml.train(cfg)
     monkeypatch.undo()
     if not torch.cuda.is_available():  # the tag bites: a plain load refuses it here
         with pytest.raises(RuntimeError, match="CUDA"):
@@ -195,7 +195,7 @@ def test_cuda_without_a_gpu_fails_at_the_start(tmp_path):
         cfg = compose(name, ["device=cuda", "logger.backend=none", "progress=false", f"output_dir={tmp_path / name}",
                              *extra])
         with pytest.raises(ValueError, match=r"device.*'cuda'.*'cpu', 'auto'"):
-            getattr(recipes, name).train(cfg)
+            getattr(umrl.trainers, name).train(cfg)
         assert not (tmp_path / name / "checkpoints").exists()
     spec = CellSpec(method="scratch", env="point_nav", seed=0, output=str(tmp_path / "cell.csv"), device="cuda")
     with pytest.raises(ValueError, match=r"device.*'cuda'.*'cpu', 'auto'"):
@@ -222,18 +222,18 @@ def test_meta_step_from_one_batch_is_the_cpus_on_every_device(device, hvp_fracti
     overrides = ["env.horizon=20", "meta_batch_size=4", "trajectories_per_task=4", "policy.hidden=[32, 32]",
                  f"trpo.hvp_fraction={hvp_fraction}", "trpo.damping=1.0", "logger.backend=none", "progress=false"]
     cfg = compose("maml", ["device=cpu", *overrides])
-    proposal, policy, loss, trpo = recipes.maml.build(cfg, torch.Generator().manual_seed(1))
+    proposal, policy, loss, trpo = umrl.trainers.maml.build(cfg, torch.Generator().manual_seed(1))
     initial = {k: v.clone() for k, v in policy.state_dict().items()}
-    support, adapted, query, _ = recipes.maml.meta_batch(cfg, proposal, policy, loss, torch.Generator().manual_seed(0))
-    reference = recipes.maml.meta_step(cfg, loss, trpo, support, query, adapted)
+    support, adapted, query, _ = umrl.trainers.maml.meta_batch(cfg, proposal, policy, loss, torch.Generator().manual_seed(0))
+    reference = umrl.trainers.maml.meta_step(cfg, loss, trpo, support, query, adapted)
 
     cfg = compose("maml", [f"device={device}", *overrides])
-    _, other_policy, other_loss, other_trpo = recipes.maml.build(cfg, torch.Generator().manual_seed(1))
+    _, other_policy, other_loss, other_trpo = umrl.trainers.maml.build(cfg, torch.Generator().manual_seed(1))
     other_policy.load_state_dict(initial)
     support, query = support.to(device), query.to(device)
     with torch.enable_grad():
         other_adapted = other_loss.adapt(support)
-    info = recipes.maml.meta_step(cfg, other_loss, other_trpo, support, query, other_adapted)
+    info = umrl.trainers.maml.meta_step(cfg, other_loss, other_trpo, support, query, other_adapted)
 
     assert reference["accepted"] == 1.0
     assert (info["accepted"], info["backtracks"]) == (reference["accepted"], reference["backtracks"])

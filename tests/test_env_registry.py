@@ -5,10 +5,10 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-import recipes
-import recipes.vime
-from recipes import compose
+import umrl.trainers
+import umrl.trainers.vime
 from umrl.envs import ENV_NAMES, EnvSpec, TaskFamily, get_env_spec, make_env, register_env, unregister_env
+from umrl.trainers import compose
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
@@ -91,12 +91,12 @@ def test_bad_records_and_names_are_rejected():
 def test_a_registered_env_runs_every_recipe(tmp_path, line_env):
     assert "line" in ENV_NAMES
     common = ["logger.backend=none", "progress=false", "env.name=line", "env.horizon=10"]
-    result = recipes.train("maml", [
+    result = umrl.trainers.train("maml", [
         *common, f"output_dir={tmp_path / 'maml'}", "proposal=oracle", "iterations=1", "trajectories_per_task=3",
         "policy.hidden=[8]", "trpo.cg_iters=2"])
     assert result["iteration"] == 1 and result["train/return_pre"] < 0  # -|x - g| summed over 10 steps
 
-    result = recipes.train("diayn", [
+    result = umrl.trainers.train("diayn", [
         *common, f"output_dir={tmp_path / 'diayn'}", "env.num_envs=3", "collector.frames_per_batch=30",
         "collector.total_frames=60", "collector.init_random_frames=30", "optim.updates_per_frame=0.1",
         "network.hidden=[8]", "network.discriminator_hidden=[8]", "replay_buffer.batch_size=8", "eval.every=60",
@@ -104,7 +104,7 @@ def test_a_registered_env_runs_every_recipe(tmp_path, line_env):
     assert 0.0 <= result["eval/final_state_accuracy"] <= 1.0 and "eval/centroid_range" in result  # 1-D coverage
     assert (tmp_path / "diayn" / "figures" / "skill_coverage.png").is_file()
 
-    result = recipes.vime.train(compose("vime", [
+    result = umrl.trainers.vime.train(compose("vime", [
         *common, f"output_dir={tmp_path / 'vime'}", "iterations=1", "env.num_envs=3", "policy.hidden=[8]",
         "dynamics.updates_per_iteration=2", "dynamics.batch_size=4"]))
     assert result["coverage/velocity_range"] >= 0 and result["train/frames"] == 30

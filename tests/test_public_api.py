@@ -25,6 +25,7 @@ LAYERS = {
     "process": 0,
     "envs": 1, "modules": 1, "transforms": 2, "rollout": 4, "objectives": 5, "optim": 5,
     "proposals": 6, "skill_coverage": 6, "reward_map": 6, "checkpoints": 6, "metatest": 7, "configs": 7,
+    "trainers": 8, "suite": 9,
 }
 
 

@@ -7,16 +7,16 @@ import torch
 from script_loading import REPO
 from tensordict import TensorDict
 
-from recipes import compose
 from umrl.checkpoints import load_diayn_checkpoint, load_discriminator, load_skill_policy
+from umrl.trainers import compose
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
 
 def load_recipe():
-    import recipes.diayn
+    import umrl.trainers.diayn
 
-    return recipes.diayn
+    return umrl.trainers.diayn
 
 
 def tiny_config(output_dir, *overrides):

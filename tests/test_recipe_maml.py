@@ -2,11 +2,11 @@
 import pytest
 import torch
 
-from recipes import compose
-from recipes.maml import train
 from umrl.checkpoints import load_maml_checkpoint, load_maml_policy
 from umrl.modules import policy_log_std
 from umrl.runtime import Checkpointer
+from umrl.trainers import compose
+from umrl.trainers.maml import train
 
 TINY = ["env.horizon=10", "meta_batch_size=2", "trajectories_per_task=3", "policy.hidden=[16]",
         "logger.backend=none", "progress=false", "checkpoint.every=1", "trpo.cg_iters=3", "num_skills=4"]

@@ -6,17 +6,17 @@ from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.modules import ProbabilisticActor
 
-from recipes import compose
 from umrl.checkpoints import load_vime_checkpoint, load_vime_dynamics, load_vime_policy
 from umrl.runtime import load_replay_buffer_state
+from umrl.trainers import compose
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
 
 def load_recipe():
-    import recipes.vime
+    import umrl.trainers.vime
 
-    return recipes.vime
+    return umrl.trainers.vime
 
 
 def tiny_config(output_dir, *overrides):

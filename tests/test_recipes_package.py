@@ -1,10 +1,12 @@
-"""recipes/ is a package: compose a recipe's config by name with overrides, also inside a running Hydra app."""
+"""umrl.trainers composes a trainer's config by name with overrides, also inside a running Hydra app; recipes/ holds
+the command lines."""
 import pytest
 from hydra import compose as hydra_compose
 from hydra.errors import ConfigCompositionException
+from script_loading import load_script
 
-import recipes
-from recipes import CONFIG_DIR, compose, config_dir
+import umrl.trainers
+from umrl.trainers import CONFIG_DIR, compose, config_dir
 
 
 def test_compose_applies_overrides_and_rejects_unknown_keys_and_names():
@@ -13,7 +15,7 @@ def test_compose_applies_overrides_and_rejects_unknown_keys_and_names():
     with pytest.raises(ConfigCompositionException, match="no_such_key"):
         compose("vime", ["no_such_key=1"])
     with pytest.raises(ValueError, match="unknown recipe 'sac'; valid choices"):
-        recipes.train("sac")
+        umrl.trainers.train("sac")
 
 
 def test_compose_inside_another_hydra_context_restores_it():
@@ -22,9 +24,10 @@ def test_compose_inside_another_hydra_context_restores_it():
         assert "seeds" in hydra_compose("suite")  # the outer context still composes its own configs
 
 
-@pytest.mark.parametrize("name", recipes.RECIPES)
+@pytest.mark.parametrize("name", umrl.trainers.TRAINERS)
 def test_each_recipe_module_has_train_and_main(name):
     import importlib
 
-    module = importlib.import_module(f"recipes.{name}")
-    assert callable(module.train) and callable(module.main)
+    module = importlib.import_module(f"umrl.trainers.{name}")
+    script = load_script(f"recipes/{name}.py")  # the command line: a Hydra main over the trainer
+    assert callable(module.train) and callable(script.main)

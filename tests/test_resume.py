@@ -11,9 +11,9 @@ import time
 import pytest
 import torch
 
-from recipes import compose
 from umrl.configs import ConfigError
 from umrl.runtime import Checkpointer, read_checkpoint
+from umrl.trainers import compose
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
@@ -48,7 +48,7 @@ def max_param_diff(a: dict, b: dict) -> float:
 @pytest.mark.parametrize("env_name", ["point_nav", "half_cheetah"])
 @pytest.mark.parametrize("recipe", ["diayn", "maml", "vime"])
 def test_resume_at_a_checkpoint_is_bit_identical(tmp_path, recipe, env_name):
-    train = importlib.import_module(f"recipes.{recipe}").train
+    train = importlib.import_module(f"umrl.trainers.{recipe}").train
     key, stop, end = BUDGET[recipe]
     whole = train(config(recipe, tmp_path / "whole", env_name, f"{key}={end}"))
     train(config(recipe, tmp_path / "split", env_name, f"{key}={stop}"))
@@ -79,7 +79,7 @@ def test_sigkill_mid_iteration_then_resume_is_bit_identical(tmp_path):
     assert proc.returncode == -signal.SIGKILL, "the run finished before it could be killed"
     assert Checkpointer(killed / "checkpoints").latest().name != "step_6.pt"
 
-    from recipes.maml import train
+    from umrl.trainers.maml import train
 
     resumed = train(compose("maml", [*overrides, f"output_dir={killed}", "resume=true"]))
     whole = train(compose("maml", [*overrides, f"output_dir={tmp_path / 'whole'}"]))
@@ -89,7 +89,7 @@ def test_sigkill_mid_iteration_then_resume_is_bit_identical(tmp_path):
 
 
 def test_resume_falls_back_past_a_truncated_checkpoint(tmp_path):
-    from recipes.maml import train
+    from umrl.trainers.maml import train
 
     def cfg(*overrides):
         return config("maml", tmp_path, "point_nav", *overrides)
@@ -110,7 +110,7 @@ def test_resume_falls_back_past_a_truncated_checkpoint(tmp_path):
     ("diayn", "checkpoint.every=80", "checkpoint.every: checkpoint has 40, this run has 80"),
 ])
 def test_resume_with_a_changed_config_is_refused_with_the_keys(tmp_path, recipe, change, message):
-    train = importlib.import_module(f"recipes.{recipe}").train
+    train = importlib.import_module(f"umrl.trainers.{recipe}").train
     key, stop, _ = BUDGET[recipe]
     train(config(recipe, tmp_path, "point_nav", f"{key}={stop}"))
     with pytest.raises(ConfigError, match=message):

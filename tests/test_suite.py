@@ -8,16 +8,16 @@ import time
 from pathlib import Path
 
 import pytest
-from script_loading import compose_config, load_script
+from script_loading import compose_config
 
-import recipes
+import umrl.trainers
+from umrl import suite
 from umrl.configs import ConfigError, validate
-from umrl.configs.suite import SuiteConfig
+from umrl.configs.suite import SuiteConfig, pretrain_seeds
 from umrl.launch import RayLauncher, run_jobs
 from umrl.metatest import read_rows, write_rows
 
 REPO = Path(__file__).resolve().parents[1]
-suite = load_script("benchmarks/suite.py")
 
 TINY = ["num_tasks=2", "protocol.num_steps=1", "protocol.num_trajectories=2", "protocol.horizon=10", "report.steps=[0]",
         "logger.backend=none", "ablation.enabled=false", "launcher.threads=1"]
@@ -38,9 +38,9 @@ def test_plan_dependencies_and_shared_pretraining(tmp_path):
     assert jobs["cell/point_nav/uml_diayn/seed1"].deps == ("pretrain/maml_diayn/point_nav/seed0",)
     assert jobs["cell/point_nav/diayn_init/seed1"].deps == ("pretrain/diayn/point_nav/seed0",)
     assert jobs["cell/point_nav/scratch/seed0"].deps == ()
-    # the recipe's own train through the package API, with composed overrides (no command line)
+    # the trainer's own train through the package API, with composed overrides (no command line)
     job = jobs["pretrain/maml_diayn/point_nav/seed0"]
-    assert job.fn.__module__ == "recipes" and job.args[0] == "maml"
+    assert job.fn.__module__ == "umrl.trainers" and job.args[0] == "maml"
     runs = suite.plan_pretraining(cfg, "g", "code")
     diayn_dir = runs["diayn", "point_nav", 0].run_dir
     assert {"proposal=diayn", "checkpoint.keep_all=true", "resume=false", "device=cpu",
@@ -64,7 +64,7 @@ def test_every_pretraining_run_gets_the_launchers_thread_count(tmp_path):
     runs = suite.plan_pretraining(cfg, "g", "code")
     assert {kind for kind, _, _ in runs} == {"diayn", "maml_diayn", "vime"}
     for run in runs.values():
-        assert recipes.compose(run.run.recipe, list(run.overrides)).num_threads == 3
+        assert umrl.trainers.compose(run.run.recipe, list(run.overrides)).num_threads == 3
 
 
 def test_independent_pretraining_per_seed_and_both_sgd_schedules(tmp_path):
@@ -95,9 +95,9 @@ def test_paper_profile_runs_k100_both_schedules_independent_pretraining():
     cfg = validate(compose_config("benchmarks/config", "suite", ["profile=paper"]), SuiteConfig)
     assert cfg.protocol.num_steps == 100 and list(cfg.protocol.sgd_schedule) == ["constant", "reference"]
     assert cfg.pretrain_seeds is None
-    assert suite.pretrain_seeds(cfg) == list(cfg.seeds)
+    assert pretrain_seeds(cfg) == list(cfg.seeds)
     quick = compose_config("benchmarks/config", "suite", ["profile=quick"])
-    assert suite.pretrain_seeds(quick) == [0, 0, 0] and quick.protocol.sgd_schedule == "constant"
+    assert pretrain_seeds(quick) == [0, 0, 0] and quick.protocol.sgd_schedule == "constant"
 
 
 def test_existing_cell_is_skipped(tmp_path):

@@ -3,14 +3,14 @@ printed failures (benchmarks/suite.py, umrl/metatest/cache.py)."""
 import os
 
 import pytest
-from script_loading import compose_config, load_script
+from script_loading import compose_config
 
-import recipes
-from umrl.configs import ConfigError
+import umrl.trainers
+from umrl import suite
+from umrl.configs import ConfigError, validate
+from umrl.configs.suite import SuiteConfig
 from umrl.metatest import read_rows
 from umrl.metatest.cache import DONE_MARKER, config_key, remove_stale_tmp, source_version, write_json_atomic
-
-suite = load_script("benchmarks/suite.py")
 
 TINY = ["num_tasks=2", "protocol.num_steps=1", "protocol.num_trajectories=2", "protocol.horizon=10",
         "report.steps=[0]", "logger.backend=none", "ablation.enabled=false", "launcher.threads=1",
@@ -68,14 +68,14 @@ def test_changed_k_recomputes_and_the_table_never_mixes(tmp_path):
 
 def test_changed_recipe_override_gets_a_new_pretraining_run(tmp_path):
     base = _cfg(tmp_path, "methods=[uml_random]")
-    runs = suite.plan_pretraining(suite.validate(base, suite.SuiteConfig), "g", "code")
+    runs = suite.plan_pretraining(validate(base, SuiteConfig), "g", "code")
     other = _cfg(tmp_path, "methods=[uml_random]", "++pretrain.maml.overrides.iterations=3")
-    changed = suite.plan_pretraining(suite.validate(other, suite.SuiteConfig), "g", "code")
+    changed = suite.plan_pretraining(validate(other, SuiteConfig), "g", "code")
     logging_only = _cfg(tmp_path, "methods=[uml_random]", "logger.backend=csv")
-    same = suite.plan_pretraining(suite.validate(logging_only, suite.SuiteConfig), "g", "code")
+    same = suite.plan_pretraining(validate(logging_only, SuiteConfig), "g", "code")
     key = ("maml_random", "point_nav", 0)
     assert runs[key].run_dir != changed[key].run_dir and runs[key].run_dir == same[key].run_dir
-    assert suite.plan_pretraining(suite.validate(base, suite.SuiteConfig), "g", "code2")[key].run_dir != runs[key].run_dir
+    assert suite.plan_pretraining(validate(base, SuiteConfig), "g", "code2")[key].run_dir != runs[key].run_dir
 
 
 def test_run_killed_after_its_last_checkpoint_counts_as_finished(tmp_path):
@@ -83,8 +83,8 @@ def test_run_killed_after_its_last_checkpoint_counts_as_finished(tmp_path):
     evaluation) before the suite wrote the completion marker; the restarted suite must finish, not fail."""
     overrides = [f"++pretrain.diayn.overrides.{k}={v}" for k, v in TINY_DIAYN.items()]
     cfg = _cfg(tmp_path, "methods=[diayn_init]", "skill_trajectories=1", *overrides)
-    run = suite.plan_pretraining(suite.validate(cfg, suite.SuiteConfig), "g", suite.code_version())["diayn", "point_nav", 0]
-    recipes.train("diayn", run.overrides)  # the run's own work, done outside the suite: no marker
+    run = suite.plan_pretraining(validate(cfg, SuiteConfig), "g", suite.code_version())["diayn", "point_nav", 0]
+    umrl.trainers.train("diayn", run.overrides)  # the run's own work, done outside the suite: no marker
     checkpoint = run.run_dir / "checkpoints" / "step_120.pt"
     assert checkpoint.is_file() and not (run.run_dir / DONE_MARKER).exists()
     stamp = checkpoint.stat().st_mtime_ns

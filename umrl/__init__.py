@@ -2,8 +2,8 @@
 
 Subpackages, lowest layer first (each imports only from the ones before it): :mod:`umrl.envs` (environments and
 their registry, task families), :mod:`umrl.transforms`, :mod:`umrl.modules`, :mod:`umrl.objectives` and
-:mod:`umrl.optim`, :mod:`umrl.rollout`, :mod:`umrl.checkpoints`, :mod:`umrl.metatest`; the training recipes are the
-``recipes`` package.
+:mod:`umrl.optim`, :mod:`umrl.rollout`, :mod:`umrl.checkpoints`, :mod:`umrl.metatest` and :mod:`umrl.configs`,
+:mod:`umrl.trainers` (training as library objects); the command lines are ``recipes/*.py``.
 
 Importing umrl changes nothing process-wide; the process tuning umrl's command lines apply is opt-in
 (:mod:`umrl.process`).

@@ -27,7 +27,7 @@ LOG_TAIL = 25
 """Lines of a failed job's log printed with its error."""
 
 SOURCE_ROOT = Path(__file__).resolve().parents[1]
-"""The tree this ``umrl`` (and ``recipes``) was imported from: first on local workers' ``PYTHONPATH``, so they run
+"""The tree this ``umrl`` was imported from: first on local workers' ``PYTHONPATH``, so they run
 the driver's code even where another copy is installed."""
 
 
@@ -40,7 +40,7 @@ class JobError(RuntimeError):
 class Job:
     """One unit of work: ``fn(*args, **kwargs)`` run by a launcher once every job in ``deps`` has succeeded.
 
-    ``fn`` and its arguments must pickle by reference (importable functions, e.g. ``recipes.train`` or
+    ``fn`` and its arguments must pickle by reference (importable functions, e.g. ``umrl.trainers.train`` or
     ``umrl.metatest.run_cell``): workers are fresh processes or Ray tasks. ``done()`` says whether its result already
     exists (then it is skipped); ``on_success`` runs in the driver; ``what`` is a one-line description for messages;
     ``log`` the file the local launcher sends the worker's output to; ``fresh`` asks it for a worker process of the

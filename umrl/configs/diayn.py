@@ -1,4 +1,4 @@
-"""Schema of ``recipes/config/diayn.yaml`` (DIAYN task proposal)."""
+"""Schema of ``umrl/configs/diayn.yaml`` (DIAYN task proposal)."""
 # ruff: noqa: RUF009  (the field helpers of umrl.configs.validate return dataclasses.field(...) objects)
 from __future__ import annotations
 
@@ -51,7 +51,7 @@ class EvalConfig:
 
 @dataclass
 class DIAYNConfig(RunConfig):
-    """Every key of ``recipes/config/diayn.yaml`` (:class:`RunConfig`'s and these); the yaml's comments say what each does."""
+    """Every key of ``umrl/configs/diayn.yaml`` (:class:`RunConfig`'s and these); the yaml's comments say what each does."""
 
     env: BatchedEnvConfig = group(BatchedEnvConfig)
     num_skills: int | None = integer(min=2)

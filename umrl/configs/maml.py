@@ -1,4 +1,4 @@
-"""Schema of ``recipes/config/maml.yaml`` (MAML meta-training: UML-DIAYN, UML-random, oracle, and the
+"""Schema of ``umrl/configs/maml.yaml`` (MAML meta-training: UML-DIAYN, UML-random, oracle, and the
 ``random_arena`` ablation)."""
 # ruff: noqa: RUF009  (the field helpers of umrl.configs.validate return dataclasses.field(...) objects)
 from __future__ import annotations
@@ -88,7 +88,7 @@ def _compile_off(name: str, value) -> bool:
 
 @dataclass
 class MAMLConfig(RunConfig):
-    """Every key of ``recipes/config/maml.yaml`` (:class:`RunConfig`'s and these); the yaml's comments say what each does."""
+    """Every key of ``umrl/configs/maml.yaml`` (:class:`RunConfig`'s and these); the yaml's comments say what each does."""
 
     env: MAMLEnvConfig = group(MAMLEnvConfig)
     proposal: str = choice(PROPOSALS)

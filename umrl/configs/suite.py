@@ -104,7 +104,7 @@ class SweepConfig:
 
 @dataclass
 class PretrainConfig:
-    """One recipe's pre-training (``recipes.<name>.train``): ``reuse`` (finished runs used as they are: must hold a
+    """One recipe's pre-training (``umrl.trainers.<name>.train``): ``reuse`` (finished runs used as they are: must hold a
     checkpoint) and ``overrides`` (recipe keys, checked against the recipe's schema)."""
 
     reuse: Any = checked(check_reuse)

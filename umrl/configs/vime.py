@@ -1,4 +1,4 @@
-"""Schema of ``recipes/config/vime.yaml`` (VIME pre-training, the VIME-init baseline)."""
+"""Schema of ``umrl/configs/vime.yaml`` (VIME pre-training, the VIME-init baseline)."""
 # ruff: noqa: RUF009  (the field helpers of umrl.configs.validate return dataclasses.field(...) objects)
 from __future__ import annotations
 
@@ -61,7 +61,7 @@ class VIMECheckpointConfig(CheckpointConfig):
 
 @dataclass
 class VIMEConfig(RunConfig):
-    """Every key of ``recipes/config/vime.yaml`` (:class:`RunConfig`'s and these); the yaml's comments say what each does."""
+    """Every key of ``umrl/configs/vime.yaml`` (:class:`RunConfig`'s and these); the yaml's comments say what each does."""
 
     iterations: int = integer(min=1)
     env: BatchedEnvConfig = group(BatchedEnvConfig)

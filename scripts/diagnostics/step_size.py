@@ -1,9 +1,9 @@
 """Scale one meta-test SGD step of MAML initialisations: does a collapse come from the step's size or its direction?
 
-    python benchmarks/step_size.py --step 2 --scales 0 0.125 0.25 0.5 1 \
+    python scripts/diagnostics/step_size.py --step 2 --scales 0 0.125 0.25 0.5 1 \
         --run "full=results/point_nav/uml_diayn_paper/seed{seed}" \
         --run "10 %=results/point_nav/uml_diayn_trained_paper_batch/seed{seed}"
-    python benchmarks/step_size.py --decompose --run "full=results/point_nav/uml_diayn_paper/seed{seed}"
+    python scripts/diagnostics/step_size.py --decompose --run "full=results/point_nav/uml_diayn_paper/seed{seed}"
 
 A diagnostic, not a method. Every run's policy (a MAML checkpoint, ``{seed}`` filled with each ``--seeds``) is
 adapted as the suite's MAML cells are (:class:`umrl.metatest.protocol.TaskAdapter`: SGD at the checkpoint's inner lr

@@ -1,7 +1,7 @@
 """Where a trained DIAYN run's skills go, at any episode length, next to a random policy.
 
-    python benchmarks/skill_coverage.py outputs/diayn/half_cheetah/seed0 --horizons 100 1000
-    python benchmarks/skill_coverage.py run_a run_b --episodes 4 --seed 0 --out outputs/skill_coverage
+    python scripts/diagnostics/skill_coverage.py outputs/diayn/half_cheetah/seed0 --horizons 100 1000
+    python scripts/diagnostics/skill_coverage.py run_a run_b --episodes 4 --seed 0 --out outputs/skill_coverage
 
 Each checkpoint (a run's output_dir, its ``checkpoints/`` folder or a ``step_*.pt``) is read with
 ``umrl.checkpoints.load_skill_policy`` / ``load_discriminator``. For every horizon, every skill is rolled out

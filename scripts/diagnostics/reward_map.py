@@ -1,8 +1,8 @@
 """Reward maps of point_nav skill discriminators: what UML-random's (and UML-DIAYN's) tasks ask for.
 
-    python benchmarks/reward_map.py --random-seeds 0 1 2                    # frozen random discriminators
-    python benchmarks/reward_map.py --random-seeds 0 1 2 --init torch      # the previous (torch default) init
-    python benchmarks/reward_map.py --diayn-checkpoint outputs/diayn/point_nav/seed0 --out outputs/reward_map
+    python scripts/diagnostics/reward_map.py --random-seeds 0 1 2                    # frozen random discriminators
+    python scripts/diagnostics/reward_map.py --random-seeds 0 1 2 --init torch      # the previous (torch default) init
+    python scripts/diagnostics/reward_map.py --diayn-checkpoint outputs/diayn/point_nav/seed0 --out outputs/reward_map
 
 Random discriminators are built exactly as the UML-random proposal builds them
 (``make_discriminator(2, K, hidden, seed=s)``, frozen); a DIAYN checkpoint is read with

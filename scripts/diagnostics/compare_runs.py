@@ -1,6 +1,6 @@
 """Compare meta-test curves across suite runs: one arm from each of several ``results.csv`` files, side by side.
 
-    python benchmarks/compare_runs.py --env point_nav --horizons 20 100 \\
+    python scripts/diagnostics/compare_runs.py --env point_nav --horizons 20 100 \\
         --run "UML-random, 20 it=uml_random (reference)@outputs/suite/long_seeds/results.csv" \\
         --run "UML-random, 500 it=uml_random (reference)@outputs/suite/it500/results.csv" \\
         --run "scratch (Adam)=scratch@outputs/suite/it500/results.csv" --out docs/budgets.png

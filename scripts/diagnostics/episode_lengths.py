@@ -1,7 +1,7 @@
 """How long meta-test episodes last: replays suite cells and prints the episode lengths behind their returns.
 
-    python benchmarks/episode_lengths.py outputs/suite/quick/cells/ant/*/seed0-*.json --stand-still
-    python benchmarks/episode_lengths.py CELL.json --steps 0 5 10
+    python scripts/diagnostics/episode_lengths.py outputs/suite/quick/cells/ant/*/seed0-*.json --stand-still
+    python scripts/diagnostics/episode_lengths.py CELL.json --steps 0 5 10
 
 Where an env ends episodes early (ant: gymnasium's Ant-v5 ends one when the torso height leaves [0.2, 1.0];
 point_nav: when the goal is reached), a return sums a different number of steps for each policy, and with rewards

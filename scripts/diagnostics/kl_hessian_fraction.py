@@ -1,6 +1,6 @@
 """How the share of the batch behind TRPO's KL Hessian changes the MAML meta-step, on one batch.
 
-    python benchmarks/kl_hessian_fraction.py --fractions 1.0 0.1 --draws 3 \
+    python scripts/diagnostics/kl_hessian_fraction.py --fractions 1.0 0.1 --draws 3 \
         --run "paper=results/point_nav/uml_diayn_paper/seed{seed}" \
         --run "10 %=results/point_nav/uml_diayn_trained_paper_batch/seed{seed}" \
         --run "iteration 0=results/point_nav/uml_diayn_paper/seed{seed}:init" \
@@ -8,7 +8,7 @@
 
 A diagnostic, not a method. For every run (a MAML checkpoint, ``{seed}`` filled with each ``--seeds``; ``:init``
 keeps the run's config but starts from the recipe's own initialisation for that seed, iteration 0) the MAML recipe's
-pieces (``recipes.maml.build``, ``meta_batch``, ``meta_step``) collect **one** meta-batch with the checkpoint's
+pieces (``umrl.trainers.maml.build``, ``meta_batch``, ``meta_step``) collect **one** meta-batch with the checkpoint's
 config (on the CPU, no CUDA graphs; ``--skills`` replaces a DIAYN proposal's skills path, e.g. with the committed
 exports), then take the TRPO meta-step from the same parameters on that same batch once per ``--fractions`` value
 (``trpo.hvp_fraction``: the share of trajectories behind the KL Hessian; fractions below 1 with ``--draws``
@@ -32,7 +32,6 @@ import statistics
 import torch
 from omegaconf import OmegaConf
 
-from recipes.maml import build, meta_batch, meta_step
 from umrl.checkpoints import load_maml_checkpoint
 from umrl.checkpoints.labels import labelled_path
 from umrl.configs import validate
@@ -42,6 +41,7 @@ from umrl.objectives.maml import gaussian_kl
 from umrl.objectives.maml_hvp import make_meta_hvp
 from umrl.process import tune_process
 from umrl.runtime import seed_everything
+from umrl.trainers.maml import build, meta_batch, meta_step
 
 BATCH_SEED_OFFSET = 1000  # the batch's streams differ from the recipe's (seed_everything(seed)) but not between runs
 

@@ -1,6 +1,6 @@
 """Meta-test MAML initialisations with their action noise replaced: how much of a step's effect is the init's σ?
 
-    python benchmarks/action_noise.py --log-std saved -1.5 -2.0 --steps 5 \
+    python scripts/diagnostics/action_noise.py --log-std saved -1.5 -2.0 --steps 5 \
         --run "paper=results/point_nav/uml_diayn_paper/seed{seed}" \
         --run "10 %=results/point_nav/uml_diayn_trained_paper_batch/seed{seed}"
 

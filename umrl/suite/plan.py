@@ -1,0 +1,271 @@
+"""The suite's plan: which pre-training runs and meta-test cells a validated suite config asks for, as
+:class:`umrl.launch.Job` lists keyed by their resolved configs and the code version (:mod:`umrl.metatest.cache`).
+
+Pre-training runs are ``umrl.trainers.train(recipe, overrides)`` jobs, cells :func:`umrl.metatest.run_cell` jobs;
+every recipe config is composed (:func:`umrl.trainers.compose`) and checked against its schema while planning, so
+every bad key or value is listed before any work starts.
+"""
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+import umrl.trainers
+from umrl.configs import ConfigError
+from umrl.configs.maml import hvp_errors
+from umrl.configs.suite import RECIPE_SCHEMAS, needed_pretraining, pretrain_seeds, reuse_dir
+from umrl.configs.validate import check_partial
+from umrl.launch import Job
+from umrl.metatest import CellSpec, Pretraining, get_method, run_cell
+from umrl.metatest.cache import config_key, keyed_config, mark_done, run_finished
+from umrl.runtime import Checkpointer, to_container
+
+__all__ = ["BUDGET_KEYS", "PretrainRun", "cell_spec", "checkpoint_identity", "hydra_overrides", "keyed_cell", "plan",
+           "plan_ablation", "plan_pretraining", "pretrain_key", "sgd_schedules"]
+
+BUDGET_KEYS = {"diayn": "collector.total_frames", "maml": "iterations", "vime": "iterations"}
+"""Each recipe's total budget, in the unit of its checkpoints' step numbers (``step_<N>.pt``: env frames for DIAYN,
+iterations for MAML and VIME): a run whose newest checkpoint reached it has finished its work."""
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Planning: which pre-training runs and cells a config asks for
+
+
+def pretrain_key(run: Pretraining, env: str, seed: int) -> str:
+    return f"pretrain/{run.kind}/{env}/seed{seed}"
+
+
+def sgd_schedules(cfg: DictConfig) -> list[str]:
+    """``protocol.sgd_schedule`` (validated) as a list: the SGD methods get one cell per schedule."""
+    value = cfg.protocol.sgd_schedule
+    return [str(value)] if isinstance(value, str) else [str(v) for v in value]
+
+
+def _hydra_value(value) -> str:
+    """A value in Hydra's override grammar (lists as ``[a,b]``, null, strings quoted unless plain)."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, (list, tuple)):
+        return f"[{','.join(_hydra_value(v) for v in value)}]"
+    if isinstance(value, str) and not re.fullmatch(r"[\w./:+-]+", value):
+        return "'" + value.replace("\\", "\\\\").replace("'", "\\'") + "'"
+    return str(value)
+
+
+def hydra_overrides(values: Mapping, prefix: str = "") -> list[str]:
+    """``{"a": {"b": 1}, "c": [1, 2]}`` -> ``["a.b=1", "c=[1,2]"]`` (Hydra overrides for ``umrl.trainers.compose``)."""
+    out = []
+    for key, value in (to_container(values) if OmegaConf.is_config(values) else dict(values)).items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            out += hydra_overrides(value, prefix=f"{name}.")
+        else:
+            out.append(f"{name}={_hydra_value(value)}")
+    return out
+
+
+@dataclass(frozen=True)
+class PretrainRun:
+    """One pre-training run of the plan.
+
+    Attributes:
+        run: what it trains; ``env``, ``seed``: where and with which seed.
+        run_dir: its output directory (``pretrain/<kind>/<env>/seed<s>-<key>``, or the ``reuse`` path).
+        overrides: the overrides ``umrl.trainers.train(run.recipe, overrides)`` runs it with (``resume=true`` when a
+            checkpoint exists); empty for a reused run.
+        key: hash of its resolved config (less :data:`umrl.metatest.cache.UNKEYED`) and the code version; None for
+            a reused run.
+        budget: its total budget in checkpoint steps (``BUDGET_KEYS``); None for a reused run.
+    """
+
+    run: Pretraining
+    env: str
+    seed: int
+    run_dir: Path
+    overrides: tuple[str, ...] = ()
+    key: str | None = None
+    budget: int | None = None
+
+    @property
+    def reused(self) -> bool:
+        return self.key is None
+
+    def done(self) -> bool:
+        """A reused run is taken as it is; a suite run is done once finished (:func:`run_finished`)."""
+        return self.reused or run_finished(self.run_dir, self.budget)
+
+    def describe(self) -> str:
+        return f"{self.run.kind} pre-training on {self.env}, seed {self.seed} -> {self.run_dir}"
+
+
+def _suite_overrides(cfg: DictConfig, run: Pretraining, env: str, seed: int, group: str,
+                     runs: Mapping[tuple[str, str, int], PretrainRun]) -> list[str]:
+    """What the suite sets in a recipe's config: env, seed, device, torch threads (``launcher.threads``), logging,
+    MAML's proposal and DIAYN run; then the user's ``pretrain.<recipe>.overrides`` (which win)."""
+    values = {"env.name": env, "seed": seed, "device": cfg.device, "num_threads": cfg.launcher.threads,
+              "logger.backend": cfg.logger.backend, "logger.group": group, "progress": False}
+    if run.recipe == "maml":
+        values.update({"proposal": run.proposal, "checkpoint.keep_all": True})
+        for needed in run.requires:
+            values[cfg.pretrain.maml.diayn_checkpoint_key] = str(runs[needed.kind, env, seed].run_dir)
+    return [f"{k}={_hydra_value(v)}" for k, v in values.items()] + hydra_overrides(
+        cfg.pretrain[run.recipe].get("overrides") or {})
+
+
+def plan_pretraining(cfg: DictConfig, group: str, code: str) -> dict[tuple[str, str, int], PretrainRun]:
+    """Every pre-training run the config needs, ``(kind, env, seed) -> PretrainRun``, runs before those that read them.
+
+    Each recipe config is composed with ``umrl.trainers.compose`` and checked against its schema here, so a renamed or
+    misspelt key or a bad value fails before any work (:class:`~umrl.configs.ConfigError` listing every problem).
+    """
+    runs: dict[tuple[str, str, int], PretrainRun] = {}
+    errors: list[str] = []
+    ordered = sorted(needed_pretraining(list(cfg.methods)), key=lambda r: len(r.requires))  # DIAYN before MAML(diayn)
+    for env in cfg.envs:
+        for seed in sorted(set(pretrain_seeds(cfg))):
+            for run in ordered:
+                reuse = reuse_dir(cfg, run, env, seed)
+                if reuse is not None:
+                    runs[run.kind, env, seed] = PretrainRun(run, env, seed, reuse)
+                    continue
+                overrides = _suite_overrides(cfg, run, env, seed, group, runs)
+                name = f"pretrain.{run.recipe} ({run.kind}, {env}, seed {seed})"
+                try:
+                    composed = umrl.trainers.compose(run.recipe, overrides)
+                except Exception as err:  # noqa: BLE001 -- Hydra's override/compose errors, reported with the rest
+                    errors.append(f"{name}: {type(err).__name__}: {str(err).splitlines()[0]}")
+                    continue
+                values = to_container(composed)
+                problems = check_partial(values, RECIPE_SCHEMAS[run.recipe], prefix=f"{name}: ")
+                if run.recipe == "maml" and not problems:
+                    problems = [f"{name}: {error}" for error in hvp_errors(values)]
+                budget = OmegaConf.select(composed, BUDGET_KEYS[run.recipe])
+                if budget is None:
+                    problems.append(f"{name}: the recipe config has no {BUDGET_KEYS[run.recipe]!r} (its budget); "
+                                    "update BUDGET_KEYS in umrl/suite/plan.py")
+                if problems:
+                    errors += problems
+                    continue
+                key = config_key(keyed_config(values), code)
+                run_dir = Path(cfg.output_dir).absolute() / "pretrain" / run.kind / env / f"seed{seed}-{key}"
+                has_checkpoint = Checkpointer(run_dir / "checkpoints").latest() is not None
+                overrides += [f"output_dir={_hydra_value(str(run_dir))}", f"resume={_hydra_value(has_checkpoint)}"]
+                runs[run.kind, env, seed] = PretrainRun(run, env, seed, run_dir, tuple(overrides), key, int(budget))
+    if errors:
+        raise ConfigError("suite pre-training configs", errors)
+    return runs
+
+
+def _pretrain_job(cfg: DictConfig, run: PretrainRun) -> Job:
+    log = Path(cfg.output_dir).absolute() / "logs" / f"pretrain_{run.run.kind}_{run.env}_seed{run.seed}.log"
+    return Job(key=pretrain_key(run.run, run.env, run.seed), fn=umrl.trainers.train, args=(run.run.recipe, list(run.overrides)),
+               deps=tuple(pretrain_key(r, run.env, run.seed) for r in run.run.requires), done=run.done,
+               on_success=(lambda: None) if run.reused else (lambda: mark_done(run.run_dir)),
+               what=run.describe(), log=log, fresh=True)
+
+
+def checkpoint_identity(run: PretrainRun, checkpoint: str | os.PathLike) -> str:
+    """What a cell's key records of its checkpoint: the path of a suite run (its key is in the path), or for a
+    ``reuse`` run the path with the newest checkpoint's name, size and modification time (a replaced run is seen)."""
+    if not run.reused:
+        return str(checkpoint)
+    path = Path(checkpoint)
+    file = path if path.is_file() else Checkpointer(path / "checkpoints").latest()
+    if file is None:
+        return str(path)
+    stat = file.stat()
+    return f"{path}@{file.name}:{stat.st_size}:{stat.st_mtime_ns}"
+
+
+def cell_spec(cfg: DictConfig, method: str, env: str, seed: int, checkpoint: str | None, *,
+              lr_schedule: str = "constant", num_steps: int | None = None, **extra) -> dict:
+    """The settings of one cell (a :class:`CellSpec` mapping without ``output``; ``num_steps`` overrides K)."""
+    protocol = {**to_container(cfg.protocol), "sgd_schedule": lr_schedule}
+    if num_steps is not None:
+        protocol["num_steps"] = num_steps
+    return {"method": method, "env": env, "seed": seed, "checkpoint": checkpoint, "protocol": protocol,
+            "num_tasks": cfg.num_tasks, "adam_lr": cfg.adam_lr, "sgd_lr": cfg.sgd_lr, "sweep": to_container(cfg.sweep),
+            "skill_trajectories": cfg.skill_trajectories, "threads": cfg.launcher.threads, "device": cfg.device,
+            "extra": extra}
+
+
+def keyed_cell(settings: Mapping, checkpoint_id: str | None, code: str, stem: Path) -> CellSpec:
+    """The :class:`CellSpec` of ``settings`` writing ``<stem>-<key>.csv``, ``key`` hashing the settings, the
+    checkpoint's identity and the code version (the spec is validated here)."""
+    key = config_key({**settings, "checkpoint": checkpoint_id}, code)
+    return CellSpec.from_mapping({**settings, "output": str(stem.with_name(f"{stem.name}-{key}.csv"))})
+
+
+def _cell_schedules(cfg: DictConfig, method: str) -> list[str]:
+    return sgd_schedules(cfg) if get_method(method).optimizer == "sgd" else ["constant"]
+
+
+def plan(cfg: DictConfig, group: str, code: str = "", runs: Mapping | None = None) -> list[Job]:
+    """Pre-training jobs and one meta-test job per (method, env, seed[, SGD schedule]) cell of a validated config
+    (``runs``: :func:`plan_pretraining`'s, computed here if not given)."""
+    runs = plan_pretraining(cfg, group, code) if runs is None else runs
+    out = Path(cfg.output_dir).absolute()
+    jobs: dict[str, Job] = {}
+    for env in cfg.envs:
+        for seed, pseed in zip(cfg.seeds, pretrain_seeds(cfg)):
+            for method in map(get_method, cfg.methods):
+                pretraining, deps, checkpoint, checkpoint_id = method.pretraining, (), None, None
+                if pretraining is not None:
+                    for needed in (*pretraining.requires, pretraining):
+                        run = runs[needed.kind, env, pseed]
+                        jobs.setdefault(pretrain_key(needed, env, pseed), _pretrain_job(cfg, run))
+                    run = runs[pretraining.kind, env, pseed]
+                    deps, checkpoint = (pretrain_key(pretraining, env, pseed),), str(run.run_dir)
+                    checkpoint_id = checkpoint_identity(run, checkpoint)
+                for schedule in _cell_schedules(cfg, method.name):
+                    suffix = "" if schedule == "constant" else f".{schedule}"
+                    settings = cell_spec(cfg, method.name, env, seed, checkpoint, lr_schedule=schedule)
+                    spec = keyed_cell(settings, checkpoint_id, code, out / "cells" / env / method.name / f"seed{seed}{suffix}")
+                    key = f"cell/{env}/{method.name}/seed{seed}{suffix.replace('.', '/')}"
+                    jobs[key] = Job(key=key, fn=run_cell, args=(spec,), deps=deps, done=Path(spec.output).exists,
+                                    what=f"meta-test of {method.name} on {env}, seed {seed} -> {spec.output}",
+                                    log=out / "logs" / f"cell_{env}_{method.name}_seed{seed}{suffix}.log")
+    # Pre-training first, runs others depend on before them (DIAYN before MAML(diayn)), so the critical path starts at once.
+    def rank(job: Job) -> tuple[bool, int]:
+        needed_by_others = any(job.key in other.deps for other in jobs.values() if other.key.startswith("pretrain/"))
+        return not job.key.startswith("pretrain/"), 0 if needed_by_others else (1 if job.deps else 2)
+
+    return sorted(jobs.values(), key=rank)
+
+
+def plan_ablation(cfg: DictConfig, runs: Mapping, code: str = "") -> list[Job]:
+    """Meta-test jobs for up to ``ablation.max_checkpoints`` kept MAML checkpoints (evenly spaced, last included)."""
+    jobs = []
+    out = Path(cfg.output_dir).absolute()
+    for env in cfg.envs:
+        for name in cfg.ablation.methods:
+            pretraining = get_method(name).pretraining
+            if name not in cfg.methods or pretraining is None or pretraining.recipe != "maml":
+                continue
+            for seed in cfg.ablation.seeds:
+                pseed = pretrain_seeds(cfg)[list(cfg.seeds).index(seed)] if seed in cfg.seeds else seed
+                if (pretraining.kind, env, pseed) not in runs:
+                    continue
+                run = runs[pretraining.kind, env, pseed]
+                files = Checkpointer(run.run_dir / "checkpoints").all()
+                count = min(len(files), int(cfg.ablation.max_checkpoints))
+                picks = sorted({round(i * (len(files) - 1) / max(count - 1, 1)) for i in range(count)}) if files else []
+                for file in (files[i] for i in picks):
+                    iteration = int(file.stem.split("_")[-1])
+                    settings = cell_spec(cfg, name, env, seed, str(file), lr_schedule=sgd_schedules(cfg)[0],
+                                         num_steps=int(cfg.ablation.num_steps), iteration=iteration)
+                    spec = keyed_cell(settings, checkpoint_identity(run, file), code,
+                                      out / "ablation" / env / name / f"seed{seed}" / f"iter{iteration}")
+                    key = f"ablation/{env}/{name}/seed{seed}/iter{iteration}"
+                    jobs.append(Job(key=key, fn=run_cell, args=(spec,), done=Path(spec.output).exists,
+                                    what=f"ablation meta-test of {name} on {env}, seed {seed}, {file.name}",
+                                    log=out / "logs" / f"ablation_{env}_{name}_seed{seed}_iter{iteration}.log"))
+    return jobs

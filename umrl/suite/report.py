@@ -1,0 +1,118 @@
+"""The suite's reports from its finished cells: ``results.csv``, ``summary.md``, ``curves.png``, the meta-training
+ablation (``ablation.png`` / ``ablation.md``) and wandb runs (one per env and arm, plus the report's figures); tables
+and figures are :mod:`umrl.metatest.results`' and :mod:`umrl.metatest.plots`'.
+"""
+from __future__ import annotations
+
+import json
+import shlex
+import sys
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from umrl.configs.suite import pretrain_seeds
+from umrl.metatest import (
+    ablation_curves,
+    ablation_table,
+    arm_label,
+    arm_styles,
+    curves_from_rows,
+    plot_ablation,
+    plot_adaptation_curves,
+    pretraining_note,
+    provenance,
+    read_rows,
+    suite_summary,
+    summary_table,
+    write_rows,
+)
+from umrl.runtime import log_image, log_metrics, make_logger, to_container, write_text_atomic
+
+__all__ = ["report", "summarize_timings"]
+
+
+def report(cfg: DictConfig, group: str, timings: Mapping[str, float], cells: Sequence[Path],
+           ablation: Sequence[Path] = (), *, wall_seconds: float) -> str:
+    """Write results.csv, summary.md, curves.png (+ ablation) from this config's ``cells`` and ``ablation`` CSVs
+    (missing ones are left out: failed jobs) and log them to wandb; returns the markdown."""
+    out = Path(cfg.output_dir)
+    cells = [Path(p) for p in cells if Path(p).exists()]
+    rows = read_rows(cells)
+    if not rows:
+        raise RuntimeError(f"no finished cells under {out / 'cells'}: nothing to report (see {out / 'logs'}).")
+    write_rows(rows, out / "results.csv")
+    table, records = summary_table(rows, steps=list(cfg.report.steps), methods=list(cfg.methods))
+    curves = curves_from_rows(rows, methods=list(cfg.methods))
+    plot_adaptation_curves(curves, out / "curves.png", styles=arm_styles(rows))
+    settings = OmegaConf.to_yaml(OmegaConf.create({k: to_container(cfg)[k] for k in (
+        "envs", "methods", "seeds", "pretrain_seeds", "num_tasks", "protocol", "adam_lr", "sgd_lr", "sweep",
+        "device")}))
+    lrs = {}
+    for p in cells:
+        if p.with_suffix(".json").exists():
+            info = json.loads(p.with_suffix(".json").read_text())
+            label = arm_label(info["method"], info.get("lr_schedule", "constant"))
+            lrs.setdefault((info["env"], label), set()).add(round(info["lr"], 6))
+    lr_lines = [f"- {env} / {method}: lr {sorted(v)}" for (env, method), v in sorted(lrs.items())]
+    time_lines = [f"- {k}: {v:.0f} s" for k, v in timings.items()] + [
+        "", "(Jobs run with launcher.workers in parallel; per-job times of every invocation are in timings.json.)"]
+    ablation_rows = read_rows([Path(p) for p in ablation if Path(p).exists()])
+    ablation_md = None
+    if ablation_rows:
+        along_training = ablation_curves(ablation_rows, metric="auc")
+        plot_ablation(along_training, out / "ablation.png",
+                      metric=f"meta-test AUC (k = 0..{cfg.ablation.num_steps})", styles=arm_styles(ablation_rows))
+        ablation_md = ablation_table(along_training)
+        write_text_atomic(out / "ablation.md", ablation_md)
+    record = provenance(command=shlex.join([Path(sys.executable).name, *sys.argv]), wall_seconds=wall_seconds,
+                        job_threads=int(cfg.launcher.threads))
+    markdown = suite_summary(table, profile=cfg.profile_name, pretraining=pretraining_note(
+        list(cfg.seeds), pretrain_seeds(cfg)), lr_lines=lr_lines, time_lines=time_lines, settings_yaml=settings,
+        provenance=record, ablation=ablation_md)
+    write_text_atomic(out / "summary.md", markdown)
+    _log_to_wandb(cfg, group, curves, records, out)
+    return markdown
+
+
+def _log_to_wandb(cfg: DictConfig, group: str, curves, records, out: Path) -> None:
+    """One run per (env, arm) of ``curves`` (the report's) with the mean curve and summary metrics, plus a report
+    run with the figures; wandb runs land in ``out/wandb`` (or ``$WANDB_DIR/wandb``)."""
+    logger_cfg = {**to_container(cfg.logger), "group": group}
+    for env, methods in curves.items():
+        for method, curve in methods.items():
+            logger = make_logger(logger_cfg, exp_name=f"{method}_{env}".replace(" ", "_"),
+                                 config={"method": method, "env": env}, log_dir=out)
+            for k, (m, lo, hi) in enumerate(zip(curve.mean, curve.low, curve.high)):
+                log_metrics(logger, {"meta_test/return": m, "meta_test/return_low": lo,
+                                     "meta_test/return_high": hi}, step=k)
+            summary = {f"summary/{r['metric']}_iqm": r["iqm"] for r in records
+                       if r["env"] == env and r["method"] == method}
+            log_metrics(logger, summary, step=len(curve.mean) - 1)
+            _finish(logger)
+    logger = make_logger(logger_cfg, exp_name="report", config=to_container(cfg), log_dir=out)
+    for name in ("curves", "ablation"):
+        if (out / f"{name}.png").exists():
+            log_image(logger, f"report/{name}", out / f"{name}.png", step=0)
+    _finish(logger)
+
+
+def _finish(logger) -> None:
+    experiment = getattr(logger, "experiment", None)
+    if experiment is not None and hasattr(experiment, "finish"):
+        experiment.finish()
+
+
+def summarize_timings(history: Sequence[Mapping]) -> dict[str, float]:
+    """Wall times for the report: each invocation, each pre-training job and the mean cell (latest successful runs)."""
+    jobs: dict[str, float] = {}
+    for invocation in history:
+        jobs.update(invocation["jobs"])
+    timings = {f"suite invocation {i + 1} (wall)": inv["wall"] for i, inv in enumerate(history)}
+    timings.update({k: v for k, v in jobs.items() if k.startswith("pretrain/")})
+    for prefix in ("cell/", "ablation/"):
+        cells = [v for k, v in jobs.items() if k.startswith(prefix)]
+        if cells:
+            timings[f"{prefix}* ({len(cells)} jobs, mean per job)"] = sum(cells) / len(cells)
+    return timings

@@ -1,0 +1,91 @@
+"""Running a suite: validate, plan (:mod:`umrl.suite.plan`), run the jobs through :mod:`umrl.launch` (resuming what a
+killed suite left), ablate and report (:mod:`umrl.suite.report`).
+"""
+from __future__ import annotations
+
+import json
+import signal
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from umrl.configs import validate
+from umrl.configs.suite import SuiteConfig
+from umrl.launch import Job, make_launcher, run_jobs
+from umrl.metatest.cache import remove_stale_tmp, source_version, write_json_atomic
+from umrl.runtime import write_text_atomic
+from umrl.suite.plan import plan, plan_ablation, plan_pretraining
+from umrl.suite.report import report, summarize_timings
+
+__all__ = ["code_version", "run_suite", "suite_group"]
+
+
+def suite_group(cfg: DictConfig) -> str:
+    """The wandb group: ``logger.group`` or ``suite-<profile>-<first start>``, stable across resumes (kept in
+    ``suite_state.json``, written atomically)."""
+    if cfg.logger.get("group"):
+        return str(cfg.logger.group)
+    state = Path(cfg.output_dir) / "suite_state.json"
+    if state.exists():
+        return json.loads(state.read_text())["group"]
+    group = f"suite-{cfg.profile_name}-{time.strftime('%Y%m%d-%H%M%S')}"
+    write_json_atomic(state, {"group": group})
+    return group
+
+
+def code_version() -> str:
+    """The hash of the sources every result depends on (``umrl/``, the trainers' configs included)."""
+    import umrl
+
+    return source_version([Path(umrl.__file__).parent])
+
+
+def _raise_on_sigterm(signum, frame):  # a `kill` stops the suite like Ctrl-C: running workers are terminated
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+def run_suite(cfg: DictConfig, *, log: Callable[[str], None] = print) -> str:
+    """Validate, plan, run (resuming), ablate and report; raises if any job failed (after reporting what finished).
+
+    Every bad input (suite keys, recipe overrides, missing ``reuse`` runs) raises
+    :class:`~umrl.configs.ConfigError` before any job starts.
+    """
+    cfg = validate(cfg, SuiteConfig)
+    out = Path(cfg.output_dir).absolute()
+    code = code_version()
+    group = suite_group(cfg)
+    runs = plan_pretraining(cfg, group, code)
+    jobs = plan(cfg, group, code, runs)
+    for stale in remove_stale_tmp(out):
+        log(f"[clean] removed {stale} (left by a killed write)")
+    write_text_atomic(out / "config.yaml", OmegaConf.to_yaml(cfg))
+    start = time.perf_counter()
+    job_times: dict[str, float] = {}
+    ablation: list[Job] = []
+    launcher = make_launcher(cfg.launcher, out)
+    previous = signal.signal(signal.SIGTERM, _raise_on_sigterm) if threading.current_thread() is threading.main_thread() else None
+    try:
+        _, failed = run_jobs(jobs, launcher, log=log, timings=job_times)
+        if cfg.ablation.enabled:
+            ablation = plan_ablation(cfg, runs, code)
+            failed.update(run_jobs(ablation, launcher, log=log, timings=job_times)[1])
+    finally:
+        launcher.shutdown()
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    timings_file = out / "timings.json"
+    history = json.loads(timings_file.read_text()) if timings_file.exists() else []
+    history.append({"wall": time.perf_counter() - start, "jobs": job_times})
+    write_json_atomic(timings_file, history)
+    cells = [Path(job.args[0].output) for job in jobs if job.key.startswith("cell/")]
+    markdown = report(cfg, group, summarize_timings(history), cells, [Path(j.args[0].output) for j in ablation],
+                      wall_seconds=sum(inv["wall"] for inv in history))
+    log(markdown)
+    log(f"reports in {out} (wandb group {group})")
+    if failed:
+        raise RuntimeError(f"{len(failed)} job(s) failed or were blocked (errors printed above; logs in {out / 'logs'}):\n"
+                           + "\n".join(f"  {k}: {v}" for k, v in failed.items()))
+    return markdown

@@ -1,0 +1,59 @@
+"""The trainers' configs: composed by name from the defaults in ``umrl/configs/<name>.yaml`` with Hydra overrides.
+
+The yaml files ship with the package (the one place each default lives; the schemas beside them,
+:mod:`umrl.configs.maml` etc., say what is accepted). The recipes' command lines read the same files
+(``@hydra.main(config_path="pkg://umrl.configs")``).
+
+Example:
+    >>> cfg = compose("maml", ["proposal=random", "env.horizon=7"])
+    >>> cfg.proposal, cfg.env.horizon
+    ('random', 7)
+"""
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+
+from hydra import compose as hydra_compose
+from hydra import initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from omegaconf import DictConfig
+
+import umrl.configs
+
+CONFIG_DIR = Path(umrl.configs.__file__).resolve().parent
+"""Where the trainers' default configs live (``diayn.yaml``, ``maml.yaml``, ``vime.yaml``)."""
+
+TRAINERS = ("diayn", "maml", "vime")
+
+__all__ = ["CONFIG_DIR", "TRAINERS", "check_name", "compose", "config_dir"]
+
+
+@contextmanager
+def config_dir(directory: str | Path = CONFIG_DIR) -> Iterator[None]:
+    """Hydra's compose API initialised on ``directory``, also inside a running ``@hydra.main`` (whose global Hydra
+    state is set aside and restored)."""
+    outer = GlobalHydra.instance().hydra if GlobalHydra.instance().is_initialized() else None
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(directory), version_base="1.3"):
+            yield
+    finally:  # initialize_config_dir swaps the GlobalHydra singleton: look it up again
+        GlobalHydra.instance().clear()
+        if outer is not None:
+            GlobalHydra.instance().initialize(outer)
+
+
+def check_name(name: str) -> None:
+    """Refuse a name that is not one of :data:`TRAINERS`."""
+    if name not in TRAINERS:
+        raise ValueError(f"unknown recipe {name!r}; valid choices: {list(TRAINERS)}.")
+
+
+def compose(name: str, overrides: Sequence[str] = ()) -> DictConfig:
+    """The config of trainer ``name`` with command-line style ``overrides`` (``["env.name=ant", "seed=3"]``); a
+    misspelt key fails here, as on the command line."""
+    check_name(name)
+    with config_dir():
+        return hydra_compose(name, overrides=list(overrides))
