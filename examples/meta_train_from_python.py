@@ -30,6 +30,7 @@ def meta_train(output_dir: Path, *, iterations: int) -> Path:
     trainer = MAMLTrainer(cfg)
     try:
         first = trainer.step()  # one meta-iteration by hand: its metrics come back as a dict
+        trainer.save()  # steps by hand are checkpointed by hand (train() does it every checkpoint.every)
         print(f"iteration 1: return pre {first['train/return_pre']:.2f} -> post {first['train/return_post']:.2f}")
         result = trainer.train()  # the rest of the budget, checkpointed
         print(f"iteration {result['iteration']}: checkpoint {result['checkpoint']}")

@@ -1,9 +1,15 @@
 """Training as library objects, one module per algorithm, built from a config composed by name.
 
-- :mod:`umrl.trainers.maml`: :class:`MAMLTrainer` (meta-training on proposed tasks; ``step``, ``state_dict`` /
-  ``load_state_dict``, ``save``, ``log``, ``train``) and the meta-iteration's parts (:func:`~umrl.trainers.maml.build`,
+Each trainer is built from its config, ``step()`` advances it and returns the step's metrics, ``state_dict()`` /
+``load_state_dict()`` hold what a resumed run needs, ``log(metrics)`` sends them to the configured logger,
+``train()`` runs to the budget (logged, checkpointed) and ``close()`` releases the envs; each module's
+``train(cfg)`` does all of it in one call.
+
+- :mod:`umrl.trainers.maml`: :class:`MAMLTrainer` (meta-training on proposed tasks) and the meta-iteration's parts (:func:`~umrl.trainers.maml.build`,
   :func:`~umrl.trainers.maml.meta_batch`, :func:`~umrl.trainers.maml.meta_step`).
-- :mod:`umrl.trainers.diayn`, :mod:`umrl.trainers.vime`: ``train(cfg)`` for DIAYN and VIME pre-training.
+- :mod:`umrl.trainers.diayn`: :class:`DIAYNTrainer` (skill discovery, the task proposal; ``step`` is one collector
+  batch, ``checkpoint`` saves and restarts the collector's episodes).
+- :mod:`umrl.trainers.vime`: :class:`VIMETrainer` (VIME pre-training, the VIME-init baseline).
 - :mod:`umrl.trainers.config`: :func:`compose` (defaults in ``umrl/configs/<name>.yaml`` plus Hydra overrides).
 
 The recipes (``recipes/<name>.py``) are their command lines. From Python::
@@ -21,9 +27,11 @@ import importlib
 from collections.abc import Sequence
 
 from umrl.trainers.config import CONFIG_DIR, TRAINERS, check_name, compose, config_dir
+from umrl.trainers.diayn import DIAYNTrainer
 from umrl.trainers.maml import MAMLTrainer
+from umrl.trainers.vime import VIMETrainer
 
-__all__ = ["CONFIG_DIR", "TRAINERS", "MAMLTrainer", "compose", "config_dir", "train"]
+__all__ = ["CONFIG_DIR", "TRAINERS", "DIAYNTrainer", "MAMLTrainer", "VIMETrainer", "compose", "config_dir", "train"]
 
 
 def train(name: str, overrides: Sequence[str] = ()) -> dict:

@@ -1,7 +1,7 @@
 """DIAYN on a reward-free env: skill-conditioned SAC + a skill discriminator (the UMRL task proposal).
 
-The command line is ``recipes/diayn.py``; from Python, ``umrl.trainers.train("diayn", overrides)`` or
-:func:`train` on a composed config (:func:`umrl.trainers.compose`).
+The command line is ``recipes/diayn.py``; from Python, :class:`DIAYNTrainer` (``step``, ``checkpoint``, ``log``,
+``train``) on a composed config (:func:`umrl.trainers.compose`), or ``umrl.trainers.train("diayn", overrides)``.
 
 Data flow: ``make_env`` -> ``SkillTransform`` (one uniform one-hot skill per episode) -> ``DiscriminatorReward``
 (log D(z|s') + log K, for the logged returns) -> TorchRL ``Collector`` -> replay buffer -> ``DIAYNLoss`` (relabels
@@ -62,6 +62,8 @@ from umrl.transforms.discriminator_reward import DiscriminatorReward
 from umrl.transforms.skill import SkillTransform
 from umrl.validation import resolve_device
 
+__all__ = ["DIAYNTrainer", "evaluate", "make_skill_env", "resolve_num_skills", "train"]
+
 
 def resolve_num_skills(cfg: DictConfig) -> int:
     """``num_skills``, or the env's default (:attr:`umrl.envs.EnvSpec.num_skills`) when it is null."""
@@ -93,112 +95,150 @@ def evaluate(cfg, env, actor, discriminator, num_skills, step, figure_path, logg
     return metrics
 
 
-def train(cfg: DictConfig) -> dict:
-    """Run DIAYN as configured (checked against :class:`~umrl.configs.diayn.DIAYNConfig` first); return the last
-    logged metrics (also the final evaluation).
+class DIAYNTrainer:
+    """DIAYN built from a config (checked against :class:`~umrl.configs.diayn.DIAYNConfig` first).
 
-    ``resume=true`` restores networks, optimisers, counters, the replay buffer (its TorchRL ``state_dict``), every
-    RNG and the envs' reset noise, and finishes bit-identical to an uninterrupted run: TorchRL cannot serialise
-    in-flight episodes, so the collector restarts its episodes after every checkpoint, in an uninterrupted run
-    exactly as in a resumed one (with the default batch of one episode per env copy, a checkpoint falls on an
-    episode boundary and nothing is cut). A config that differs from the checkpoint's beyond
-    ``umrl.configs.RESUME_ALLOW`` is refused."""
-    cfg = validate(cfg, DIAYNConfig)
-    num_skills = resolve_num_skills(cfg)
-    seed_everything(cfg.seed)
-    device = torch.device(resolve_device("device", cfg.device))  # networks, loss, replay storage and envs
-    out_dir = Path(cfg.output_dir)
-    checkpointer = Checkpointer(out_dir / "checkpoints", keep_all=cfg.checkpoint.keep_all)
+    Construction seeds every RNG (``cfg.seed``), builds the networks, the loss and its update, the training and
+    evaluation envs, the collector and the replay buffer, evaluates a uniformly random policy (logged once under
+    ``eval/random_*``), and with ``cfg.resume`` restores the latest checkpoint (:meth:`load_state_dict`).
 
-    # --- networks, loss, optimisers -------------------------------------------------------------------
-    env_spec = get_env_spec(cfg.env.name)
-    obs_dim, act_dim = env_spec.obs_dim, env_spec.act_dim
-    hidden, disc_hidden = list(cfg.network.hidden), list(cfg.network.discriminator_hidden)
-    disc_dims = None if cfg.network.discriminator_input_dims is None else list(cfg.network.discriminator_input_dims)
-    meta = {"env": cfg.env.name, "obs_dim": obs_dim, "act_dim": act_dim, "num_skills": num_skills,
-            "hidden": hidden, "discriminator_hidden": disc_hidden,
-            "discriminator_observation_key": ["next", "observation"],
-            "discriminator_input_dims": disc_dims}
-    # FileNotFoundError says what is missing; ConfigError lists changed keys; ValueError if format or meta differ
-    # the collector restarts its episodes at every checkpoint: a changed checkpoint.every would continue another run
-    allow = [key for key in RESUME_ALLOW if key != "checkpoint.every"]
-    state = (DIAYN_FORMAT.load_for_resume(checkpointer, meta, lambda saved: check_resume(saved, cfg, allow))
-             if cfg.resume else None)
-    if state is not None:
-        check_resumable(state, checkpointer.latest())
-    # initialised on the CPU (the same weights on every device), then moved before the loss copies their parameters
-    actor = make_skill_actor(obs_dim, num_skills, act_dim, hidden=hidden).to(device)
-    discriminator = make_discriminator(obs_dim, num_skills, hidden=disc_hidden,
-                                       input_dims=disc_dims).to(device)
-    qvalue = make_skill_qvalue(obs_dim, num_skills, act_dim, hidden=hidden).to(device)
-    loss = DIAYNLoss(actor, qvalue, discriminator, num_skills=num_skills, alpha_init=cfg.optim.alpha,
-                     fixed_alpha=cfg.optim.fixed_alpha, target_entropy=-float(act_dim)).to(device)
-    loss.make_value_estimator(gamma=cfg.optim.gamma)
-    optimizers = make_diayn_optimizers(loss, lr=cfg.optim.lr, discriminator_lr=cfg.optim.discriminator_lr,
-                                       capturable=cfg.optim.cudagraphs)
-    # before the restore: TorchRL's SoftUpdate copies the online Q-networks into the targets when it is built
-    update = DIAYNUpdate(loss, optimizers, tau=cfg.optim.tau, compile=cfg.optim.compile, cudagraphs=cfg.optim.cudagraphs)
-    counters = {"frames": 0, "updates": 0, "next_eval": cfg.eval.every, "next_checkpoint": cfg.checkpoint.every,
-                "update_credit": 0.0}
-    if state is not None:
-        loss.load_state_dict(state["loss"])
-        for name, optimizer in optimizers.items():
-            optimizer.load_state_dict(state["optimizers"][name])
-        counters.update(state["counters"])
+    :meth:`step` takes one collector batch: into the replay, then ``optim.updates_per_frame`` updates per new frame,
+    an evaluation when one is due; it returns the batch's metrics. :meth:`checkpoint` saves and restarts the
+    collector's episodes (TorchRL cannot serialise in-flight episodes, so an uninterrupted run restarts them at every
+    checkpoint exactly as a resumed one does; with the default batch of one episode per env copy nothing is cut).
+    :meth:`train` steps to ``collector.total_frames``, logging, checkpointing every ``checkpoint.every`` frames and
+    at the end, then evaluates the final skills. A resumed run finishes bit-identical to an uninterrupted one; a
+    config that differs from the checkpoint's beyond ``umrl.configs.RESUME_ALLOW`` (or in ``checkpoint.every``) is
+    refused. Nothing process-wide is set (:mod:`umrl.process`).
+    """
 
-    def save() -> Path:
-        return save_diayn_checkpoint(checkpointer, meta=meta, actor=actor, discriminator=discriminator, loss=loss,
-                                     optimizers=optimizers, counters=counters, replay=replay_buffer_state(buffer),
-                                     rng=rng_state(), envs={"train": env_state(env), "eval": env_state(eval_env)},
-                                     config=cfg)
+    def __init__(self, cfg: DictConfig):
+        self.cfg = cfg = validate(cfg, DIAYNConfig)
+        self.num_skills = num_skills = resolve_num_skills(cfg)
+        seed_everything(cfg.seed)
+        device = torch.device(resolve_device("device", cfg.device))  # networks, loss, replay storage and envs
+        self.output_dir = Path(cfg.output_dir)
+        self.checkpointer = Checkpointer(self.output_dir / "checkpoints", keep_all=cfg.checkpoint.keep_all)
 
-    # --- data -----------------------------------------------------------------------------------------
-    env = make_skill_env(cfg, cfg.env.num_envs, num_skills, cfg.seed, discriminator)
-    eval_env = make_skill_env(cfg, num_skills * cfg.eval.episodes_per_skill, num_skills, cfg.seed + 10_000)
-    remaining = cfg.collector.total_frames - counters["frames"]
-    if remaining <= 0:
-        raise ValueError(f"nothing to do: the checkpoint already has {counters['frames']} frames >= "
-                         f"collector.total_frames={cfg.collector.total_frames}; raise collector.total_frames.")
-    collector = Collector(
-        env, actor, frames_per_batch=cfg.collector.frames_per_batch, total_frames=remaining,
-        init_random_frames=max(0, cfg.collector.init_random_frames - counters["frames"]),
-        auto_register_policy_transforms=False,
-    )
-    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(cfg.replay_buffer.size, device=device),
-                                    batch_size=cfg.replay_buffer.batch_size)
-    warmup = max(cfg.collector.init_random_frames, cfg.replay_buffer.batch_size)
+        # --- networks, loss, optimisers ---------------------------------------------------------------
+        env_spec = get_env_spec(cfg.env.name)
+        obs_dim, act_dim = env_spec.obs_dim, env_spec.act_dim
+        hidden, disc_hidden = list(cfg.network.hidden), list(cfg.network.discriminator_hidden)
+        disc_dims = (None if cfg.network.discriminator_input_dims is None
+                     else list(cfg.network.discriminator_input_dims))
+        self.meta = {"env": cfg.env.name, "obs_dim": obs_dim, "act_dim": act_dim, "num_skills": num_skills,
+                     "hidden": hidden, "discriminator_hidden": disc_hidden,
+                     "discriminator_observation_key": ["next", "observation"],
+                     "discriminator_input_dims": disc_dims}
+        # FileNotFoundError says what is missing; ConfigError lists changed keys; ValueError if format or meta differ
+        # the collector restarts its episodes at every checkpoint: a changed checkpoint.every would continue another
+        # run
+        allow = [key for key in RESUME_ALLOW if key != "checkpoint.every"]
+        state = (DIAYN_FORMAT.load_for_resume(self.checkpointer, self.meta,
+                                              lambda saved: check_resume(saved, cfg, allow))
+                 if cfg.resume else None)
+        if state is not None:
+            check_resumable(state, self.checkpointer.latest())
+        # initialised on the CPU (the same weights on every device), then moved before the loss copies their parameters
+        self.actor = make_skill_actor(obs_dim, num_skills, act_dim, hidden=hidden).to(device)
+        self.discriminator = make_discriminator(obs_dim, num_skills, hidden=disc_hidden,
+                                                input_dims=disc_dims).to(device)
+        qvalue = make_skill_qvalue(obs_dim, num_skills, act_dim, hidden=hidden).to(device)
+        self.loss = DIAYNLoss(self.actor, qvalue, self.discriminator, num_skills=num_skills,
+                              alpha_init=cfg.optim.alpha, fixed_alpha=cfg.optim.fixed_alpha,
+                              target_entropy=-float(act_dim)).to(device)
+        self.loss.make_value_estimator(gamma=cfg.optim.gamma)
+        self.optimizers = make_diayn_optimizers(self.loss, lr=cfg.optim.lr, discriminator_lr=cfg.optim.discriminator_lr,
+                                                capturable=cfg.optim.cudagraphs)
+        # before the restore: TorchRL's SoftUpdate copies the online Q-networks into the targets when it is built
+        self.update = DIAYNUpdate(self.loss, self.optimizers, tau=cfg.optim.tau, compile=cfg.optim.compile,
+                                  cudagraphs=cfg.optim.cudagraphs)
+        self.counters = {"frames": 0, "updates": 0, "next_eval": cfg.eval.every,
+                         "next_checkpoint": cfg.checkpoint.every, "update_credit": 0.0}
+        if state is not None:
+            self.loss.load_state_dict(state["loss"])
+            for name, optimizer in self.optimizers.items():
+                optimizer.load_state_dict(state["optimizers"][name])
+            self.counters.update(state["counters"])
 
-    logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, config=cfg, log_dir=out_dir)
-    with isolated_rng():
-        baseline = evaluate_skills(eval_env, None, env_name=cfg.env.name, num_skills=num_skills,
-                                   episodes_per_skill=cfg.eval.episodes_per_skill, horizon=cfg.env.horizon)
-    random_metrics = {f"eval/random_{k}": v for k, v in coverage_metrics(
-        baseline, num_skills, discriminator, env_spec.eval_tasks()).items()}
-    log_metrics(logger, random_metrics, counters["frames"])
-    if state is not None:  # after everything that draws while setting up: the loop starts where the saved one stood
-        load_replay_buffer_state(buffer, state["replay"])
-        load_env_state(env, state["envs"]["train"])
-        load_env_state(eval_env, state["envs"]["eval"])
+        # --- data -------------------------------------------------------------------------------------
+        self.env = make_skill_env(cfg, cfg.env.num_envs, num_skills, cfg.seed, self.discriminator)
+        self.eval_env = make_skill_env(cfg, num_skills * cfg.eval.episodes_per_skill, num_skills, cfg.seed + 10_000)
+        remaining = cfg.collector.total_frames - self.counters["frames"]
+        if remaining <= 0:
+            raise ValueError(f"nothing to do: the checkpoint already has {self.counters['frames']} frames >= "
+                             f"collector.total_frames={cfg.collector.total_frames}; raise collector.total_frames.")
+        self.collector = Collector(
+            self.env, self.actor, frames_per_batch=cfg.collector.frames_per_batch, total_frames=remaining,
+            init_random_frames=max(0, cfg.collector.init_random_frames - self.counters["frames"]),
+            auto_register_policy_transforms=False,
+        )
+        self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(cfg.replay_buffer.size, device=device),
+                                             batch_size=cfg.replay_buffer.batch_size)
+        self.warmup = max(cfg.collector.init_random_frames, cfg.replay_buffer.batch_size)
+
+        self.logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, config=cfg, log_dir=self.output_dir)
+        with isolated_rng():
+            self.baseline = evaluate_skills(self.eval_env, None, env_name=cfg.env.name, num_skills=num_skills,
+                                            episodes_per_skill=cfg.eval.episodes_per_skill, horizon=cfg.env.horizon)
+        self.random_metrics = {f"eval/random_{k}": v for k, v in coverage_metrics(
+            self.baseline, num_skills, self.discriminator, env_spec.eval_tasks()).items()}
+        log_metrics(self.logger, self.random_metrics, self.counters["frames"])
+        if state is not None:  # after everything that draws while setting up: the loop starts where the saved one stood
+            self.load_state_dict(state)
+        self._batches = batches_beside_physics(self.collector, self.env)
+        self.start_time = time.perf_counter()
+
+    @property
+    def done(self) -> bool:
+        """Whether the budget (``collector.total_frames``) is reached."""
+        return self.counters["frames"] >= self.cfg.collector.total_frames
+
+    def state_dict(self) -> dict:
+        """Networks (the loss's), optimisers, counters, the replay buffer, every RNG and both envs' reset noise."""
+        return {"loss": self.loss.state_dict(),
+                "optimizers": {name: opt.state_dict() for name, opt in self.optimizers.items()},
+                "counters": dict(self.counters), "replay": replay_buffer_state(self.buffer), "rng": rng_state(),
+                "envs": {"train": env_state(self.env), "eval": env_state(self.eval_env)}}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore the replay buffer, the envs' and RNGs' state, and restart the collector's episodes as the saved
+        run did right after saving (networks, optimisers and counters are restored at construction, before the
+        collector is built from them)."""
+        load_replay_buffer_state(self.buffer, state["replay"])
+        load_env_state(self.env, state["envs"]["train"])
+        load_env_state(self.eval_env, state["envs"]["eval"])
         set_rng_state(state["rng"])
-        collector.reset()  # as the saved run did right after saving
+        self.collector.reset()
 
-    # --- loop -----------------------------------------------------------------------------------------
-    progress = tqdm.tqdm(total=cfg.collector.total_frames, initial=counters["frames"], disable=not cfg.progress,
-                         unit="frames", desc=f"DIAYN {cfg.env.name}")
-    metrics, start, path = {}, time.perf_counter(), None
-    collect_start = time.perf_counter()
-    for data in batches_beside_physics(collector, env):
+    def checkpoint(self) -> Path:
+        """Save the current state and restart the collector's episodes (what a run resumed from it does)."""
+        path = save_diayn_checkpoint(
+            self.checkpointer, meta=self.meta, actor=self.actor, discriminator=self.discriminator, loss=self.loss,
+            optimizers=self.optimizers, counters=self.counters, replay=replay_buffer_state(self.buffer),
+            rng=rng_state(), envs={"train": env_state(self.env), "eval": env_state(self.eval_env)}, config=self.cfg)
+        self.collector.reset()
+        return path
+
+    def evaluate(self, figure_path: Path) -> dict[str, float]:
+        """Fresh rollouts of every skill (:func:`evaluate`) at the current frame count."""
+        return evaluate(self.cfg, self.eval_env, self.actor, self.discriminator, self.num_skills,
+                        self.counters["frames"], figure_path, self.logger, self.baseline)
+
+    def step(self) -> dict[str, float]:
+        """One collector batch: replay, updates, an evaluation when due; its metrics."""
+        cfg, counters = self.cfg, self.counters
+        collect_start = time.perf_counter()
+        data = next(self._batches).reshape(-1)
         collect_time = time.perf_counter() - collect_start
-        data = data.reshape(-1)
-        buffer.extend(data)
+        self.buffer.extend(data)
         counters["frames"] += data.numel()
-        progress.update(data.numel())
 
         update_start, logs = time.perf_counter(), []
-        if len(buffer) >= warmup:
+        if len(self.buffer) >= self.warmup:
             counters["update_credit"] += data.numel() * cfg.optim.updates_per_frame
             for _ in range(int(counters["update_credit"])):
-                logs.append(update(buffer.sample()))
+                logs.append(self.update(self.buffer.sample()))
             counters["update_credit"] -= int(counters["update_credit"])
         if logs:  # once per batch of updates: a per-update check would wait on the GPU after every update
             stacked = torch.stack(logs)
@@ -208,7 +248,7 @@ def train(cfg: DictConfig) -> dict:
         update_time = time.perf_counter() - update_start
 
         metrics = {"time/env_steps_per_s": data.numel() / max(collect_time, 1e-9),
-                   "time/elapsed_s": time.perf_counter() - start, "train/frames": counters["frames"],
+                   "time/elapsed_s": time.perf_counter() - self.start_time, "train/frames": counters["frames"],
                    "train/updates": counters["updates"]}
         if logs:
             mean = stacked.float().mean()
@@ -218,26 +258,51 @@ def train(cfg: DictConfig) -> dict:
         if finished.any():
             metrics["train/episode_return"] = float(data["next", "episode_reward"][finished].mean())
         if counters["frames"] >= counters["next_eval"]:
-            figure_path = out_dir / "figures" / f"skill_coverage_{counters['frames']}.png"
-            metrics.update(evaluate(cfg, eval_env, actor, discriminator, num_skills, counters["frames"], figure_path,
-                                    logger, baseline))
+            metrics.update(self.evaluate(self.output_dir / "figures" / f"skill_coverage_{counters['frames']}.png"))
             counters["next_eval"] += cfg.eval.every
-        log_metrics(logger, metrics, counters["frames"])
-        progress.set_postfix({k.split("/")[-1]: f"{v:.3g}" for k, v in metrics.items()
-                              if k in ("train/discriminator_accuracy", "train/pseudo_reward",
-                                       "eval/final_state_accuracy")})
-        due = counters["frames"] >= counters["next_checkpoint"]
-        if due or counters["frames"] >= cfg.collector.total_frames:  # every checkpoint.every frames, and the end
-            counters["next_checkpoint"] += cfg.checkpoint.every * due
-            path = save()
-            collector.reset()  # what a run resumed from this checkpoint does: both step the same episodes
-        collect_start = time.perf_counter()
-    collector.shutdown()
-    progress.close()
+        return metrics
 
-    final = evaluate(cfg, eval_env, actor, discriminator, num_skills, counters["frames"],
-                     out_dir / "figures" / "skill_coverage.png", logger, baseline)
-    log_metrics(logger, final, counters["frames"])
-    env.close()
-    eval_env.close()
-    return {**metrics, **final, **random_metrics, "checkpoint": str(path)}
+    def log(self, metrics: dict[str, float]) -> None:
+        """Send ``metrics`` to the configured logger at the current frame count."""
+        log_metrics(self.logger, metrics, self.counters["frames"])
+
+    def train(self) -> dict:
+        """Step to ``collector.total_frames`` (logging, checkpointing every ``checkpoint.every`` frames and at the
+        end), then evaluate the final skills; returns the last metrics, the final evaluation, the random policy's
+        and the ``checkpoint`` path."""
+        cfg, counters = self.cfg, self.counters
+        progress = tqdm.tqdm(total=cfg.collector.total_frames, initial=counters["frames"], disable=not cfg.progress,
+                             unit="frames", desc=f"DIAYN {cfg.env.name}")
+        metrics, path = {}, None
+        while not self.done:
+            before = counters["frames"]
+            metrics = self.step()
+            progress.update(counters["frames"] - before)
+            self.log(metrics)
+            progress.set_postfix({k.split("/")[-1]: f"{v:.3g}" for k, v in metrics.items()
+                                  if k in ("train/discriminator_accuracy", "train/pseudo_reward",
+                                           "eval/final_state_accuracy")})
+            due = counters["frames"] >= counters["next_checkpoint"]
+            if due or self.done:  # every checkpoint.every frames, and the end
+                counters["next_checkpoint"] += cfg.checkpoint.every * due
+                path = self.checkpoint()
+        progress.close()
+        final = self.evaluate(self.output_dir / "figures" / "skill_coverage.png")
+        self.log(final)
+        return {**metrics, **final, **self.random_metrics, "checkpoint": str(path)}
+
+    def close(self) -> None:
+        """Shut the collector down and close both envs."""
+        self.collector.shutdown()
+        self.env.close()
+        self.eval_env.close()
+
+
+def train(cfg: DictConfig) -> dict:
+    """Run DIAYN as configured in this process (:class:`DIAYNTrainer`, then closed): the last logged metrics (also
+    the final evaluation's) and the checkpoint path."""
+    trainer = DIAYNTrainer(cfg)
+    try:
+        return trainer.train()
+    finally:
+        trainer.close()

@@ -1,7 +1,7 @@
 """VIME pre-training: TRPO on the information-gain bonus alone (the VIME-init baseline's policy).
 
-The command line is ``recipes/vime.py``; from Python, ``umrl.trainers.train("vime", overrides)`` or
-:func:`train` on a composed config (:func:`umrl.trainers.compose`).
+The command line is ``recipes/vime.py``; from Python, :class:`VIMETrainer` (``step``, ``state_dict``, ``save``,
+``log``, ``train``) on a composed config (:func:`umrl.trainers.compose`), or ``umrl.trainers.train("vime", overrides)``.
 
 Each iteration: collect ``env.num_envs`` trajectories of ``env.horizon`` steps with the current policy
 (:func:`umrl.rollout.collect`, one batched policy call per step) -> score every transition with
@@ -64,7 +64,10 @@ from umrl.skill_coverage import cumulative_coverage, plot_coverage, state_covera
 from umrl.transforms.vime_bonus import VIMEBonus
 from umrl.validation import resolve_device
 
+__all__ = ["TRANSITION_KEYS", "VIMETrainer", "heldout_metrics", "train", "train_dynamics", "trpo_update"]
+
 TRANSITION_KEYS = ("observation", "action", ("next", "observation"))
+"""What the dynamics model learns from: ``(s, a, s')``."""
 
 
 def trpo_update(trpo: TRPOStep, loss: ImportanceSamplingLoss, batch: TensorDictBase) -> dict[str, float]:
@@ -104,110 +107,147 @@ def heldout_metrics(loss_fn: VIMELoss, holdout: TensorDictBase) -> dict[str, flo
     return {"heldout_log_likelihood": log_lik, "heldout_elbo": elbo}
 
 
-def train(cfg: DictConfig) -> dict:
-    """Run VIME pre-training as configured (checked against :class:`~umrl.configs.vime.VIMEConfig` first); return
-    the last metrics and the checkpoint path. ``resume=true`` (with ``checkpoint.save_replay=true``, the default)
-    finishes bit-identical to an uninterrupted run; a config that differs from the checkpoint's beyond
-    ``umrl.configs.RESUME_ALLOW`` is refused."""
-    cfg = validate(cfg, VIMEConfig)
-    seed_everything(cfg.seed)
-    device = torch.device(resolve_device("device", cfg.device))  # networks, replay storage, env outputs
-    out_dir = Path(cfg.output_dir)
-    checkpointer = Checkpointer(out_dir / "checkpoints", keep_all=cfg.checkpoint.keep_all)
+class VIMETrainer:
+    """VIME pre-training built from a config (checked against :class:`~umrl.configs.vime.VIMEConfig` first).
 
-    env = make_env(cfg.env.name, cfg.env.num_envs, seed=cfg.seed, device=device, horizon=cfg.env.horizon,
-                   backend=cfg.env.backend)
-    obs_dim, act_dim = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
-    # initialised on the CPU (the same weights on every device), then moved
-    policy = make_gaussian_policy(obs_dim, act_dim, hidden=list(cfg.policy.hidden),
-                                  init_std=cfg.policy.init_std).to(device)
-    dyn = cfg.dynamics
-    dynamics = BayesianDynamics(obs_dim, act_dim, hidden=list(dyn.hidden), prior_std=dyn.prior_std,
-                                likelihood_std=dyn.likelihood_std, init_std=dyn.init_std).to(device)
-    loss_fn = VIMELoss(dynamics, dataset_size=1, num_samples=dyn.num_samples)
-    optimizer = torch.optim.Adam(dynamics.parameters(), lr=dyn.lr)
-    bonus = VIMEBonus(dynamics, eta=cfg.bonus.eta, num_samples=cfg.bonus.num_samples,
-                      median_window=cfg.bonus.median_window).to(device)
-    surrogate = ImportanceSamplingLoss(policy)
-    t = cfg.trpo
-    surrogate.make_value_estimator(gamma=t.gamma, lmbda=t.gae_lambda)
-    trpo = TRPOStep(TensorDict.from_module(policy), max_kl=t.max_kl, damping=t.damping, cg_iters=t.cg_iters,
-                    backtrack_ratio=t.backtrack_ratio, max_backtracks=t.max_backtracks)
-    meta = {"env": cfg.env.name, "obs_dim": obs_dim, "act_dim": act_dim, "policy_hidden": list(cfg.policy.hidden),
-            "policy_init_std": cfg.policy.init_std, "dynamics_hidden": list(dyn.hidden),
-            "prior_std": dyn.prior_std, "likelihood_std": dyn.likelihood_std}
-    counters = {"iteration": 0, "frames": 0}
-    replay = TensorDictReplayBuffer(storage=LazyTensorStorage(dyn.replay_size, device=device),
-                                    batch_size=dyn.batch_size)
-    holdout = TensorDictReplayBuffer(storage=LazyTensorStorage(dyn.holdout_size, device=device))
-    initial_states = seen = None  # the untrained policy's visited states: the coverage figure's baseline
-    initial_coverage: dict[str, float] = {}
-    # FileNotFoundError says what is missing; ConfigError lists changed keys; ValueError if format or meta differ
-    state = VIME_FORMAT.load_for_resume(checkpointer, meta, lambda saved: check_resume(saved, cfg)) if cfg.resume else None
-    if state is not None:
-        policy.load_state_dict(state["policy"])
-        dynamics.load_state_dict(state["dynamics"])
-        optimizer.load_state_dict(state["dynamics_optimizer"])
-        bonus.median_history.copy_(state["median_history"])
-        for buffer, stored in ((replay, state["replay"]), (holdout, state["holdout"])):
+    Construction seeds every RNG (``cfg.seed``), builds the env, the policy, the Bayesian dynamics model with its
+    loss, optimiser and replay (a held-out share beside it), the bonus and the TRPO step; with ``cfg.resume`` it
+    restores the latest checkpoint (:meth:`load_state_dict`; ``checkpoint.save_replay=true``, the default, makes the
+    resumed run finish bit-identical to an uninterrupted one). A config that differs from the checkpoint's beyond
+    ``umrl.configs.RESUME_ALLOW`` is refused, and so is a checkpoint already at ``cfg.iterations``.
+
+    :meth:`step` runs one iteration (module docstring) and returns its metrics; :meth:`train` steps to
+    ``cfg.iterations``, logging, checkpointing (``cfg.checkpoint.every`` and the last) and drawing the coverage
+    figure. Nothing process-wide is set (:mod:`umrl.process`).
+    """
+
+    def __init__(self, cfg: DictConfig):
+        self.cfg = cfg = validate(cfg, VIMEConfig)
+        seed_everything(cfg.seed)
+        self.device = device = torch.device(resolve_device("device", cfg.device))  # networks, replay, env outputs
+        self.output_dir = Path(cfg.output_dir)
+        self.checkpointer = Checkpointer(self.output_dir / "checkpoints", keep_all=cfg.checkpoint.keep_all)
+        self.env = make_env(cfg.env.name, cfg.env.num_envs, seed=cfg.seed, device=device, horizon=cfg.env.horizon,
+                            backend=cfg.env.backend)
+        obs_dim, act_dim = self.env.observation_spec["observation"].shape[-1], self.env.action_spec.shape[-1]
+        # initialised on the CPU (the same weights on every device), then moved
+        self.policy = make_gaussian_policy(obs_dim, act_dim, hidden=list(cfg.policy.hidden),
+                                           init_std=cfg.policy.init_std).to(device)
+        dyn = cfg.dynamics
+        self.dynamics = BayesianDynamics(obs_dim, act_dim, hidden=list(dyn.hidden), prior_std=dyn.prior_std,
+                                         likelihood_std=dyn.likelihood_std, init_std=dyn.init_std).to(device)
+        self.dynamics_loss = VIMELoss(self.dynamics, dataset_size=1, num_samples=dyn.num_samples)
+        self.optimizer = torch.optim.Adam(self.dynamics.parameters(), lr=dyn.lr)
+        self.bonus = VIMEBonus(self.dynamics, eta=cfg.bonus.eta, num_samples=cfg.bonus.num_samples,
+                               median_window=cfg.bonus.median_window).to(device)
+        t = cfg.trpo
+        self.surrogate = ImportanceSamplingLoss(self.policy)
+        self.surrogate.make_value_estimator(gamma=t.gamma, lmbda=t.gae_lambda)
+        self.trpo = TRPOStep(TensorDict.from_module(self.policy), max_kl=t.max_kl, damping=t.damping,
+                             cg_iters=t.cg_iters, backtrack_ratio=t.backtrack_ratio, max_backtracks=t.max_backtracks)
+        self.meta = {"env": cfg.env.name, "obs_dim": obs_dim, "act_dim": act_dim,
+                     "policy_hidden": list(cfg.policy.hidden), "policy_init_std": cfg.policy.init_std,
+                     "dynamics_hidden": list(dyn.hidden), "prior_std": dyn.prior_std,
+                     "likelihood_std": dyn.likelihood_std}
+        self.counters = {"iteration": 0, "frames": 0}
+        self.replay = TensorDictReplayBuffer(storage=LazyTensorStorage(dyn.replay_size, device=device),
+                                             batch_size=dyn.batch_size)
+        self.holdout = TensorDictReplayBuffer(storage=LazyTensorStorage(dyn.holdout_size, device=device))
+        self.initial_states = self.seen = None  # the untrained policy's visited states: the figure's baseline
+        self.initial_coverage: dict[str, float] = {}
+        self.last_batch: TensorDictBase | None = None
+        # FileNotFoundError says what is missing; ConfigError lists changed keys; ValueError if format or meta differ
+        state = (VIME_FORMAT.load_for_resume(self.checkpointer, self.meta, lambda saved: check_resume(saved, cfg))
+                 if cfg.resume else None)
+        if state is not None:
+            self.load_state_dict(state)
+        if self.counters["iteration"] >= cfg.iterations:
+            raise ValueError(f"nothing to do: the checkpoint is at iteration {self.counters['iteration']} >= "
+                             f"iterations={cfg.iterations}; raise iterations.")
+        self.logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, config=cfg, log_dir=self.output_dir)
+        self.start_time = time.perf_counter()
+
+    @property
+    def done(self) -> bool:
+        """Whether the budget (``cfg.iterations``) is reached."""
+        return self.counters["iteration"] >= self.cfg.iterations
+
+    def state_dict(self) -> dict:
+        """Everything a resumed run needs: networks, optimiser, bonus normaliser, transitions (with
+        ``checkpoint.save_replay``), counters, coverage baselines, every RNG and the env's reset noise."""
+        keep = self.cfg.checkpoint.save_replay
+        return {
+            "policy": self.policy.state_dict(), "dynamics": self.dynamics.state_dict(),
+            "dynamics_optimizer": self.optimizer.state_dict(), "median_history": self.bonus.median_history,
+            "replay": replay_buffer_state(self.replay) if keep else None,
+            "holdout": replay_buffer_state(self.holdout) if keep else None, "counters": dict(self.counters),
+            "initial_coverage": self.initial_coverage, "initial_states": self.initial_states, "visited": self.seen,
+            "rng": rng_state(), "env": env_state(self.env),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict`'s (or a checkpoint's) state."""
+        self.policy.load_state_dict(state["policy"])
+        self.dynamics.load_state_dict(state["dynamics"])
+        self.optimizer.load_state_dict(state["dynamics_optimizer"])
+        self.bonus.median_history.copy_(state["median_history"])
+        for buffer, stored in ((self.replay, state["replay"]), (self.holdout, state["holdout"])):
             if stored is not None:  # TorchRL's buffer state: contents, write cursor, sampler
                 load_replay_buffer_state(buffer, stored)
-        seen = None if state["visited"] is None else state["visited"].to(device)
-        counters.update(state["counters"])
-        initial_coverage, initial_states = state["initial_coverage"], state["initial_states"]
+        self.seen = None if state["visited"] is None else state["visited"].to(self.device)
+        self.counters.update(state["counters"])
+        self.initial_coverage, self.initial_states = state["initial_coverage"], state["initial_states"]
         set_rng_state(state["rng"])
-        load_env_state(env, state["env"])
+        load_env_state(self.env, state["env"])
 
-    def save() -> Path:
-        keep = cfg.checkpoint.save_replay
+    def save(self) -> Path:
+        """Write the checkpoint of the current iteration; returns its path."""
+        state = self.state_dict()
         return save_vime_checkpoint(
-            checkpointer, meta=meta, policy=policy, dynamics=dynamics, dynamics_optimizer=optimizer,
-            median_history=bonus.median_history, replay=replay_buffer_state(replay) if keep else None,
-            holdout=replay_buffer_state(holdout) if keep else None, counters=counters, initial_coverage=initial_coverage,
-            initial_states=initial_states, visited=seen, rng=rng_state(), env=env_state(env), config=cfg)
+            self.checkpointer, meta=self.meta, policy=self.policy, dynamics=self.dynamics,
+            dynamics_optimizer=self.optimizer, median_history=state["median_history"], replay=state["replay"],
+            holdout=state["holdout"], counters=self.counters, initial_coverage=self.initial_coverage,
+            initial_states=self.initial_states, visited=self.seen, rng=state["rng"], env=state["env"],
+            config=self.cfg)
 
-    if counters["iteration"] >= cfg.iterations:
-        raise ValueError(f"nothing to do: the checkpoint is at iteration {counters['iteration']} >= "
-                         f"iterations={cfg.iterations}; raise iterations.")
-    logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, config=cfg, log_dir=out_dir)
-    progress = tqdm.tqdm(total=cfg.iterations, initial=counters["iteration"], disable=not cfg.progress,
-                         unit="it", desc=f"VIME {cfg.env.name}")
-    start, metrics, batch = time.perf_counter(), {}, None
-    while counters["iteration"] < cfg.iterations:
+    def step(self) -> dict[str, float]:
+        """One iteration: collect, score with the bonus, train the dynamics model, one TRPO step; its metrics."""
+        cfg, dyn = self.cfg, self.cfg.dynamics
         tic = time.perf_counter()
-        batch = collect(env, policy, num_tasks=1, horizon=cfg.env.horizon)[0]  # [N, H]
+        batch = collect(self.env, self.policy, num_tasks=1, horizon=cfg.env.horizon)[0]  # [N, H]
         collect_s = time.perf_counter() - tic
         coverage = state_coverage(batch, cfg.env.name, cfg.coverage.cell_size)
-        seen, cumulative = cumulative_coverage(seen, batch, cfg.env.name, cfg.coverage.cell_size)
-        if counters["iteration"] == 0:
-            initial_coverage, initial_states = coverage, visited_states(batch, cfg.env.name).cpu()
+        self.seen, cumulative = cumulative_coverage(self.seen, batch, cfg.env.name, cfg.coverage.cell_size)
+        if self.counters["iteration"] == 0:
+            self.initial_coverage, self.initial_states = coverage, visited_states(batch, cfg.env.name).cpu()
 
         tic = time.perf_counter()
-        bonus(batch)  # ("next", "reward") <- 0 + eta * info gain / median, from the model before it sees the batch
+        self.bonus(batch)  # ("next", "reward") <- 0 + eta * info gain / median, from the model before it sees them
         bonus_s = time.perf_counter() - tic
         if cfg.bonus.shuffle:  # control run: same bonus values, no link to the transitions that earned them
             reward = batch["next", "reward"]
             reward[batch["mask"]] = reward[batch["mask"]][torch.randperm(int(batch["mask"].sum()))]
         valid = batch[batch["mask"]].select(*TRANSITION_KEYS)
         held = (torch.rand(valid.shape[0]) < dyn.holdout_fraction).to(valid.device)  # CPU draw: same split anywhere
-        for buffer, part in ((replay, valid[~held]), (holdout, valid[held])):
+        for buffer, part in ((self.replay, valid[~held]), (self.holdout, valid[held])):
             if part.shape[0]:
                 buffer.extend(part)
 
         tic = time.perf_counter()
-        dynamics.update_normalizer(*(valid[k] for k in TRANSITION_KEYS))
-        dyn_metrics = train_dynamics(loss_fn, optimizer, replay, cfg)
-        if len(holdout):
-            dyn_metrics.update(heldout_metrics(loss_fn, holdout[:]))
+        self.dynamics.update_normalizer(*(valid[k] for k in TRANSITION_KEYS))
+        dyn_metrics = train_dynamics(self.dynamics_loss, self.optimizer, self.replay, cfg)
+        if len(self.holdout):
+            dyn_metrics.update(heldout_metrics(self.dynamics_loss, self.holdout[:]))
         dynamics_s = time.perf_counter() - tic
 
         tic = time.perf_counter()
-        surrogate.value_estimator(batch)
-        trpo_info = trpo_update(trpo, surrogate, batch)
+        self.surrogate.value_estimator(batch)
+        trpo_info = trpo_update(self.trpo, self.surrogate, batch)
         policy_s = time.perf_counter() - tic
 
-        counters["iteration"] += 1
-        counters["frames"] += batch.numel()
+        self.counters["iteration"] += 1
+        self.counters["frames"] += batch.numel()
+        self.last_batch = batch
         mask = batch["mask"]
         info_gain, intrinsic = batch["next", "info_gain"][mask], batch["next", "intrinsic_reward"][mask]
         metrics = {
@@ -219,27 +259,59 @@ def train(cfg: DictConfig) -> dict:
             **{f"trpo/{k}": v for k, v in trpo_info.items()},
             "policy/action_std": float(batch["scale"].mean()),
             **{f"coverage/{k}": v for k, v in {**coverage, **cumulative}.items()},
-            **{f"coverage/initial_{k}": v for k, v in initial_coverage.items()},
+            **{f"coverage/initial_{k}": v for k, v in self.initial_coverage.items()},
             "time/env_steps_per_s": batch.numel() / max(collect_s, 1e-9), "time/collect_s": collect_s,
             "time/bonus_s": bonus_s, "time/dynamics_s": dynamics_s, "time/policy_s": policy_s,
-            "time/elapsed_s": time.perf_counter() - start, "train/frames": counters["frames"],
+            "time/elapsed_s": time.perf_counter() - self.start_time, "train/frames": self.counters["frames"],
         }
         if not all(math.isfinite(v) for v in metrics.values()):
-            raise FloatingPointError(f"non-finite metrics at iteration {counters['iteration']}: "
+            raise FloatingPointError(f"non-finite metrics at iteration {self.counters['iteration']}: "
                                      f"{ {k: v for k, v in metrics.items() if not math.isfinite(v)} }")
-        log_metrics(logger, metrics, counters["iteration"])
-        progress.update(1)
-        progress.set_postfix({k.split("/")[-1]: f"{metrics[k]:.3g}" for k in
-                              ("coverage/cells", "coverage/velocity_range", "dynamics/heldout_log_likelihood")
-                              if k in metrics})
-        if counters["iteration"] % cfg.checkpoint.every == 0 or counters["iteration"] == cfg.iterations:
-            path = save()  # and always the last iteration (the figure below draws no random numbers)
-    progress.close()
-    if initial_states is not None:  # also on a resumed run
-        spec = get_env_spec(cfg.env.name)
-        plot_coverage(visited_states(batch, cfg.env.name), out_dir / "figures" / "coverage.png",
-                      eval_tasks=spec.eval_tasks(),
-                      baseline=initial_states, label="VIME policy",
-                      baseline_label="initial policy", title=f"VIME {cfg.env.name}: visited states")
-    env.close()
-    return {**metrics, "checkpoint": str(path)}
+        return metrics
+
+    def log(self, metrics: dict[str, float]) -> None:
+        """Send ``metrics`` to the configured logger at the current iteration."""
+        log_metrics(self.logger, metrics, self.counters["iteration"])
+
+    def plot_coverage(self) -> Path:
+        """``<output_dir>/figures/coverage.png``: the last batch's visited states against the untrained policy's."""
+        path = self.output_dir / "figures" / "coverage.png"
+        plot_coverage(visited_states(self.last_batch, self.cfg.env.name), path,
+                      eval_tasks=get_env_spec(self.cfg.env.name).eval_tasks(), baseline=self.initial_states,
+                      label="VIME policy", baseline_label="initial policy",
+                      title=f"VIME {self.cfg.env.name}: visited states")
+        return path
+
+    def train(self) -> dict:
+        """Step to ``cfg.iterations`` (logging, checkpointing every ``cfg.checkpoint.every`` and at the last), then
+        draw the coverage figure; returns the last metrics and the ``checkpoint`` path."""
+        cfg, metrics, path = self.cfg, {}, None
+        progress = tqdm.tqdm(total=cfg.iterations, initial=self.counters["iteration"], disable=not cfg.progress,
+                             unit="it", desc=f"VIME {cfg.env.name}")
+        while not self.done:
+            metrics = self.step()
+            self.log(metrics)
+            progress.update(1)
+            progress.set_postfix({k.split("/")[-1]: f"{metrics[k]:.3g}" for k in
+                                  ("coverage/cells", "coverage/velocity_range", "dynamics/heldout_log_likelihood")
+                                  if k in metrics})
+            if self.counters["iteration"] % cfg.checkpoint.every == 0 or self.done:
+                path = self.save()  # and always the last iteration (the figure below draws no random numbers)
+        progress.close()
+        if self.initial_states is not None and self.last_batch is not None:  # also on a resumed run
+            self.plot_coverage()
+        return {**metrics, "checkpoint": str(path)}
+
+    def close(self) -> None:
+        """Close the env."""
+        self.env.close()
+
+
+def train(cfg: DictConfig) -> dict:
+    """Run VIME pre-training as configured in this process (:class:`VIMETrainer`, then closed): the last metrics
+    and the checkpoint path."""
+    trainer = VIMETrainer(cfg)
+    try:
+        return trainer.train()
+    finally:
+        trainer.close()
