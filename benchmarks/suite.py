@@ -1,7 +1,7 @@
 """The benchmark suite's command line: does unsupervised meta-learning make RL faster here?
 
     python benchmarks/suite.py profile=quick                     # point_nav, reduced budgets, minutes on 2 cores
-    python benchmarks/suite.py profile=paper envs=[point_nav]    # docs/protocol.md settings
+    python benchmarks/suite.py profile=reference envs=[point_nav]  # the reference code's settings
     python benchmarks/suite.py profile=quick launcher.ray_address=auto   # jobs as Ray tasks on a cluster
     python benchmarks/suite.py profile=quick device=auto         # pre-training and meta-test on a GPU if there is one
 

@@ -19,9 +19,9 @@ import umrl.trainers
 from umrl.configs import ConfigError
 from umrl.configs.maml import hvp_errors
 from umrl.configs.suite import RECIPE_SCHEMAS, needed_pretraining, pretrain_seeds, reuse_dir
-from umrl.configs.validate import check_partial
+from umrl.configs.validate import check_partial, fill_env_defaults
 from umrl.launch import Job
-from umrl.metatest import CellSpec, Pretraining, get_method, run_cell
+from umrl.metatest import CellSpec, Pretraining, default_lr_schedule, get_method, run_cell
 from umrl.metatest.cache import config_key, keyed_config, mark_done, run_finished
 from umrl.runtime import Checkpointer, to_container
 
@@ -147,7 +147,9 @@ def plan_pretraining(cfg: DictConfig, group: str, code: str) -> dict[tuple[str, 
                 problems = check_partial(values, RECIPE_SCHEMAS[run.recipe], prefix=f"{name}: ")
                 if run.recipe == "maml" and not problems:
                     problems = [f"{name}: {error}" for error in hvp_errors(values)]
-                budget = OmegaConf.select(composed, BUDGET_KEYS[run.recipe])
+                if not problems:  # env-dependent defaults (budgets, DIAYN's episode length) enter the run's key
+                    fill_env_defaults(values, RECIPE_SCHEMAS[run.recipe])
+                budget = OmegaConf.select(OmegaConf.create(values), BUDGET_KEYS[run.recipe])
                 if budget is None:
                     problems.append(f"{name}: the recipe config has no {BUDGET_KEYS[run.recipe]!r} (its budget); "
                                     "update BUDGET_KEYS in umrl/suite/plan.py")
@@ -226,7 +228,7 @@ def plan(cfg: DictConfig, group: str, code: str = "", runs: Mapping | None = Non
                     deps, checkpoint = (pretrain_key(pretraining, env, pseed),), str(run.run_dir)
                     checkpoint_id = checkpoint_identity(run, checkpoint)
                 for schedule in _cell_schedules(cfg, method.name):
-                    suffix = "" if schedule == "constant" else f".{schedule}"
+                    suffix = "" if schedule == default_lr_schedule(method.name) else f".{schedule}"
                     settings = cell_spec(cfg, method.name, env, seed, checkpoint, lr_schedule=schedule)
                     spec = keyed_cell(settings, checkpoint_id, code, out / "cells" / env / method.name / f"seed{seed}{suffix}")
                     key = f"cell/{env}/{method.name}/seed{seed}{suffix.replace('.', '/')}"
