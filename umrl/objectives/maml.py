@@ -26,7 +26,7 @@ from typing import ClassVar
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from tensordict.utils import NestedKey
+from tensordict.utils import NestedKey, unravel_key
 from torch.distributions import Normal, kl_divergence
 from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import LossModule
@@ -113,7 +113,8 @@ class MAMLLoss(LossModule):
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
     default_value_estimator = ValueEstimators.GAE
-    out_keys: ClassVar[list[str]] = ["loss_objective", "trust_region_kl", "kl", "inner_loss", "return_pre", "return_post", "ratio_max"]
+    out_keys: ClassVar[list[str]] = ["loss_objective", "trust_region_kl", "kl", "inner_loss", "return_pre",
+                                     "return_post", "ratio_max"]
 
     def __init__(
         self,
@@ -152,7 +153,8 @@ class MAMLLoss(LossModule):
         keys = self.tensor_keys
         shared = [keys.action, keys.advantage, keys.mask, ("next", keys.reward), *self.functional_policy.net.in_keys]
         query_only = [keys.action_log_prob, keys.loc, keys.scale]
-        return [(keys.support, k) for k in shared] + [(keys.query, k) for k in [*shared, *query_only]]
+        return ([unravel_key((keys.support, k)) for k in shared]
+                + [unravel_key((keys.query, k)) for k in [*shared, *query_only]])
 
     def pack(self, support: TensorDictBase, query: TensorDictBase,
              adapted: TensorDictBase | None = None) -> TensorDictBase:
