@@ -53,7 +53,7 @@ def test_skill_coverage_evaluates_a_checkpoint_at_each_horizon_beside_a_random_p
     from umrl.envs import get_env_spec
 
     directory, _ = tiny_diayn_checkpoint
-    command = [sys.executable, str(REPO / "benchmarks" / "skill_coverage.py"), str(directory), "--horizons", "5",
+    command = [sys.executable, str(REPO / "scripts" / "diagnostics" / "skill_coverage.py"), str(directory), "--horizons", "5",
                "20", "--episodes", "2", "--out", str(tmp_path / "figures")]
     out = subprocess.run(command, capture_output=True, text=True, timeout=300, check=True, cwd=REPO).stdout
     assert subprocess.run(command, capture_output=True, text=True, timeout=300, check=True, cwd=REPO).stdout == out
@@ -81,7 +81,7 @@ def test_episode_lengths_replays_a_cell_with_its_own_episodes(tmp_path):
     subprocess.run([sys.executable, str(REPO / "recipes" / "maml.py"), "iterations=1", "meta_batch_size=2",
                     "trajectories_per_task=2", "env.horizon=5", "logger.backend=none", "progress=false",
                     f"output_dir={maml}"], capture_output=True, text=True, timeout=300, check=True, cwd=REPO)
-    out = subprocess.run([sys.executable, str(REPO / "benchmarks" / "episode_lengths.py"),
+    out = subprocess.run([sys.executable, str(REPO / "scripts" / "diagnostics" / "episode_lengths.py"),
                           str(Path(cell).with_suffix(".json")), "--stand-still", "--maml-checkpoints",
                           str(maml / "checkpoints" / "step_1.pt")],
                          capture_output=True, text=True, timeout=300, check=True, cwd=REPO).stdout

@@ -8,7 +8,7 @@ import pytest
 
 from umrl.metatest import to_rows, write_rows
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "compare_runs.py"
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "diagnostics" / "compare_runs.py"
 
 
 def _cli(monkeypatch, capsys, *args):

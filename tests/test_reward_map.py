@@ -71,7 +71,7 @@ def test_cli_maps_random_and_diayn_discriminators_and_draws_them(tiny_diayn_chec
     monkeypatch.setattr(sys, "argv", ["reward_map.py", "--random-seeds", "1", "--hidden", "16", "--num-skills",
                                       "4", "--resolution", "21", "--diayn-checkpoint", str(directory),
                                       "--out", str(out)])
-    runpy.run_path(str(Path(__file__).parents[1] / "benchmarks" / "reward_map.py"), run_name="__main__")
+    runpy.run_path(str(Path(__file__).parents[1] / "scripts" / "diagnostics" / "reward_map.py"), run_name="__main__")
     printed = capsys.readouterr().out
     for name in ("random_xavier_seed1", "diayn_diayn"):
         assert name in printed
