@@ -98,25 +98,27 @@ def compare_proposals(cmp: DeterministicCMP, *, temperatures: tuple[float, ...] 
     return rows
 
 
-def regret_against_latents(cmp: DeterministicCMP, latents: list[int], *, seed: int = 0, mi_steps: int = 600
-                           ) -> dict[str, list[float]]:
+def regret_against_latents(cmp: DeterministicCMP, latents: list[int], *, seed: int = 0, mi_steps: int = 600,
+                           temperatures: tuple[float, ...] = (0.0, 1.0)) -> dict[str, list[float]]:
     """Worst-case and uniform-goal regret of the MI-optimal and random-discriminator proposals for each ``|Z|``.
 
-    Returns lists aligned with ``latents`` under keys ``"<proposal> worst-case"``, ``"<proposal> uniform"``, and
-    ``"MI reached"``/``"MI maximum"`` (nats: the ascent's value and :func:`max_mutual_information`'s).
+    Returns lists aligned with ``latents`` under keys ``"<proposal>[ a=<t>] worst-case"`` and ``"... uniform"`` for
+    each of ``temperatures`` (as in :func:`compare_proposals`), and ``"MI reached"``/``"MI maximum"`` (nats: the
+    ascent's value and :func:`~umrl.theory.mutual_information.max_mutual_information`'s).
     """
     reachable = reachable_at(cmp)
     uniform = reachable.double() / reachable.sum()
     curves: dict[str, list[float]] = {}
     for z in latents:
         mi = maximise_mutual_information(cmp, z, steps=mi_steps, seed=seed)
-        marginals = {"MI-optimal": optimal_policy_marginal(cmp, mi.rewards()),
-                     "random discriminator": optimal_policy_marginal(
-                         cmp, random_discriminator_rewards(cmp.num_states, z, seed=seed))}
-        for name, rho in marginals.items():
-            curves.setdefault(f"{name} worst-case", []).append(float(worst_case_regret(rho, reachable)))
-            curves.setdefault(f"{name} uniform", []).append(float(regret(rho, uniform)))
+        tasks = {"MI-optimal": mi.rewards(),
+                 "random discriminator": random_discriminator_rewards(cmp.num_states, z, seed=seed)}
+        for temperature in temperatures:
+            for name, rewards in tasks.items():
+                rho = optimal_policy_marginal(cmp, rewards, temperature=temperature)
+                label = f"{name} a={temperature:g}" if temperature > 0 else name
+                curves.setdefault(f"{label} worst-case", []).append(float(worst_case_regret(rho, reachable)))
+                curves.setdefault(f"{label} uniform", []).append(float(regret(rho, uniform)))
         curves.setdefault("MI reached", []).append(mi.mutual_information)
         curves.setdefault("MI maximum", []).append(max_mutual_information(z, int(reachable.sum())))
     return curves
-
