@@ -29,6 +29,7 @@ from umrl.theory import (
     tree,
     uniform_policy,
     uniform_trajectory_policy,
+    worst_case_goal,
     worst_case_regret,
 )
 from umrl.validation import InvalidValue
@@ -108,6 +109,7 @@ def test_lemma1_uniform_marginal_is_minimax():
         # the worst case is attained by a Dirac and no sampled goal distribution exceeds it
         diracs = [regret(rho, torch.eye(cmp.num_states, dtype=torch.float64)[g]) for g in support.nonzero().flatten()]
         assert max(diracs) == pytest.approx(float(worst))
+        assert regret(rho, worst_case_goal(rho, support)) == pytest.approx(float(worst))
         assert all(regret(rho, on_reachable(cmp, dirichlet(n, s, 0.2))) <= worst for s in range(20))
 
 
@@ -195,3 +197,16 @@ def test_bad_input_is_refused_before_work():
         policy_for_marginal(WALLED, torch.eye(9, dtype=torch.float64)[4])
     with pytest.raises(InvalidValue, match=r"^horizon: got 0; expected an integer >= 1"):
         chain(3, 0)
+
+
+def test_comparison_rows_and_regret_against_latents():
+    from umrl.theory import compare_proposals, regret_against_latents
+
+    cmp = grid(3, 3, 2)  # S_T: the 6 cells within 2 moves of the corner
+    rows = {row.proposal: row for row in compare_proposals(cmp, temperatures=(0.0, 1.0), mi_steps=150)}
+    assert rows["uniform-over-reachable"].worst_case == pytest.approx(6)
+    assert rows["MI-optimal"].worst_case == pytest.approx(6)
+    assert rows["random actions"].worst_case == pytest.approx(25)  # the far corners: 1 of 25 action pairs each
+    assert all(row.worst_case >= 6 - 1e-9 for row in rows.values())
+    curves = regret_against_latents(cmp, [3, 6], mi_steps=150)
+    assert curves["MI-optimal worst-case"][0] == float("inf") and curves["MI-optimal worst-case"][1] == pytest.approx(6)

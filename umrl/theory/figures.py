@@ -8,6 +8,7 @@ import torch
 
 from umrl.theory.cmp import DeterministicCMP, reachable_at
 from umrl.theory.evaluation import Evaluation
+from umrl.validation import InvalidValue
 
 
 def plot_grid_marginals(cmp: DeterministicCMP, rows: list[Evaluation], path: str | Path) -> Path:
@@ -19,7 +20,7 @@ def plot_grid_marginals(cmp: DeterministicCMP, rows: list[Evaluation], path: str
     import matplotlib.pyplot as plt
 
     if cmp.shape is None:
-        raise ValueError(f"cmp: got {cmp.name}; expected a grid (a CMP with a shape)")
+        raise InvalidValue("cmp", cmp.name, "a grid (a CMP with a shape)")
     columns = min(4, len(rows))
     lines = math.ceil(len(rows) / columns)
     fig, axes = plt.subplots(lines, columns, figsize=(3 * columns, 3 * lines), squeeze=False)
