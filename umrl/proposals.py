@@ -34,6 +34,7 @@ import torch
 from torchrl.envs import TransformedEnv
 
 from umrl.envs import TaskReward, get_env_spec, make_env, make_task_env
+from umrl.envs.registry import check_observation_size
 from umrl.modules.discriminator import make_discriminator
 from umrl.transforms.discriminator_reward import DiscriminatorReward
 from umrl.transforms.skill import SkillTransform
@@ -90,7 +91,8 @@ def _skill_env(env_name: str, discriminator, num_skills: int, batch: int, seed: 
     env = make_env(env_name, batch, seed=seed, horizon=horizon, device=device, **options)
     skills = SkillTransform(num_skills)
     env.append_transform(skills)
-    env.append_transform(DiscriminatorReward(discriminator, num_skills))
+    # a proposed task rewards the state its action led to, as the hand-designed task rewards do
+    env.append_transform(DiscriminatorReward(discriminator, num_skills, observation_key=("next", "observation")))
     return env, skills
 
 
@@ -150,11 +152,8 @@ def make_proposal(
         from umrl.checkpoints import load_discriminator
 
         discriminator, num_skills, trained_obs_dim = load_discriminator(diayn_checkpoint)
-        if trained_obs_dim != spec.obs_dim:  # the checkpoint's env observation, not D's input width (chosen dims)
-            raise ValueError(
-                f"the discriminator was trained on {trained_obs_dim}-D observations but {env_name} has "
-                f"{spec.obs_dim}-D ones: was the DIAYN checkpoint trained on another env?"
-            )
+        # the checkpoint's env observation, not D's input width (chosen dims)
+        check_observation_size(env_name, trained_obs_dim, f"the discriminator of {diayn_checkpoint}")
     else:
         num_skills = num_skills or spec.num_skills
         discriminator = make_discriminator(spec.obs_dim, num_skills, hidden=discriminator_hidden, seed=seed)

@@ -21,7 +21,8 @@ if TYPE_CHECKING:  # tasks.py reads the registry: the type alone avoids an impor
 
 COVERAGE_REDUCTIONS = ("last", "mean")
 
-__all__ = ["COVERAGE_REDUCTIONS", "ENV_NAMES", "EnvSpec", "get_env_spec", "register_env", "unregister_env"]
+__all__ = ["COVERAGE_REDUCTIONS", "ENV_NAMES", "EnvSpec", "check_observation_size", "get_env_spec", "register_env",
+           "unregister_env"]
 
 
 @dataclass(frozen=True)
@@ -42,8 +43,14 @@ class EnvSpec:
             episode mean: velocities).
         coverage_cell: grid cell side for VIME's state-coverage counts of a 2-D :attr:`coverage_key`; ``None`` for
             1-D coverage (velocity ranges).
-        horizon: default episode length.
+        horizon: default episode length of meta-training and meta-test (the paper's path length, 100).
         num_eval_tasks: how many held-out evaluation tasks :meth:`eval_tasks` returns.
+        diayn_horizon: DIAYN's episode length, ``max_path_length`` of DIAYN's reference run for this kind of env
+            (ben-eysenbach/sac ``examples/mujoco_all_diayn.py``: 1000 on the MuJoCo envs, 100 for its point env).
+        diayn_frames: DIAYN's env-step budget in that reference run (``n_epochs × epoch_length``: 10,000 × 1000 =
+            10 M on HalfCheetah and Ant, 50 × 1000 = 50 k for its point env); the recipe's default.
+        maml_iterations: MAML meta-iterations of the reference run (cbfinn/maml_rl: ``maml_trpo_point.py`` runs 100;
+            ``test_maml_cheetah.py`` / ``test_maml_ant.py`` load iterations 475 / 375); the recipe's default.
     """
 
     name: str
@@ -58,10 +65,15 @@ class EnvSpec:
     coverage_cell: float | None = None
     horizon: int = 100
     num_eval_tasks: int = 20
+    diayn_horizon: int = 100
+    diayn_frames: int = 50_000
+    maml_iterations: int = 100
 
     def __post_init__(self) -> None:
         positive = {"obs_dim": self.obs_dim, "act_dim": self.act_dim, "num_skills": self.num_skills,
-                    "horizon": self.horizon, "num_eval_tasks": self.num_eval_tasks}
+                    "horizon": self.horizon, "num_eval_tasks": self.num_eval_tasks,
+                    "diayn_horizon": self.diayn_horizon, "diayn_frames": self.diayn_frames,
+                    "maml_iterations": self.maml_iterations}
         bad = {k: v for k, v in positive.items() if not (isinstance(v, int) and v > 0)}
         if bad:
             raise ValueError(f"EnvSpec {self.name!r}: these fields must be positive integers, got {bad}.")
@@ -106,6 +118,18 @@ def get_env_spec(name: str) -> EnvSpec:
         return _REGISTRY[name]
     except KeyError:
         raise ValueError(f"unknown env {name!r}; valid choices: {list(_REGISTRY)}.") from None
+
+
+def check_observation_size(env_name: str, obs_dim: int, source: str) -> None:
+    """Refuse networks built for ``obs_dim``-D observations (``source``: e.g. a checkpoint) on env ``env_name`` when
+    its observation has another size: a clear ``ValueError`` before any work, not a shape error inside a matmul."""
+    expected = get_env_spec(env_name).obs_dim
+    if obs_dim != expected:
+        raise ValueError(
+            f"observation size: got {obs_dim} ({source}); expected {expected}, the observation size of env "
+            f"{env_name!r}: they were trained on another observation (another env, or an earlier version of this one: "
+            f"ant's was 107-D before it excluded the x-y position); train them again."
+        )
 
 
 #: Names of the registered envs, in registration order: a live view of the registry (an env registered later is in
