@@ -103,8 +103,8 @@ def maximise_mutual_information(cmp: DeterministicCMP, num_latents: int, *, step
         beta = max(0.0, 1.0 - step / anneal) if anneal else 0.0
         objective = mutual_information(conditionals) + beta * conditional_entropy(conditionals)
         (gradient,) = torch.autograd.grad(objective, logits)
-        with torch.no_grad():  # Adam's ascent step (betas 0.9, 0.999), written out: torch.optim's first
-            # step spends seconds importing the compiler stack
+        with torch.no_grad():  # Adam's ascent step (betas 0.9, 0.999), written out: the first
+            # step of torch.optim.Adam costs seconds of one-time setup, longer than a whole ascent here
             first.mul_(0.9).add_(gradient, alpha=0.1)
             second.mul_(0.999).addcmul_(gradient, gradient, value=0.001)
             unbiased = first / (1 - 0.9 ** (step + 1))
