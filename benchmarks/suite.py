@@ -2,6 +2,7 @@
 
 Runs UML-DIAYN, UML-random, oracle, VIME-init, DIAYN-init and scratch on the chosen envs and seeds::
 
+    python benchmarks/suite.py profile=tiny                      # every method at toy budgets, ~2 min on 2 cores
     python benchmarks/suite.py profile=quick                     # point_nav, reduced budgets, minutes on 2 cores
     python benchmarks/suite.py profile=paper envs=[point_nav]    # PROTOCOL.md settings
     python benchmarks/suite.py profile=quick launcher.ray_address=auto   # jobs as Ray tasks on a cluster
@@ -41,6 +42,7 @@ the tail of its log. Every value is a config override (``benchmarks/config/``).
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
 import shlex
@@ -89,7 +91,15 @@ from umrl.metatest.cache import (
     source_version,
     write_json_atomic,
 )
-from umrl.runtime import Checkpointer, log_image, log_metrics, make_logger, to_container, write_text_atomic
+from umrl.runtime import (
+    Checkpointer,
+    close_logger,
+    log_image,
+    log_metrics,
+    make_logger,
+    to_container,
+    write_text_atomic,
+)
 
 BUDGET_KEYS = {"diayn": "collector.total_frames", "maml": "iterations", "vime": "iterations"}
 """Each recipe's total budget, in the unit of its checkpoints' step numbers (``step_<N>.pt``: env frames for DIAYN,
@@ -395,18 +405,12 @@ def _log_to_wandb(cfg: DictConfig, group: str, curves, records, out: Path) -> No
             summary = {f"summary/{r['metric']}_iqm": r["iqm"] for r in records
                        if r["env"] == env and r["method"] == method}
             log_metrics(logger, summary, step=len(curve.mean) - 1)
-            _finish(logger)
+            close_logger(logger)
     logger = make_logger(logger_cfg, exp_name="report", config=to_container(cfg), log_dir=out)
     for name in ("curves", "ablation"):
         if (out / f"{name}.png").exists():
             log_image(logger, f"report/{name}", out / f"{name}.png", step=0)
-    _finish(logger)
-
-
-def _finish(logger) -> None:
-    experiment = getattr(logger, "experiment", None)
-    if experiment is not None and hasattr(experiment, "finish"):
-        experiment.finish()
+    close_logger(logger)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -497,8 +501,9 @@ def run_suite(cfg: DictConfig, *, log: Callable[[str], None] = print) -> str:
 
 @hydra.main(version_base="1.3", config_path="config", config_name="suite")
 def main(cfg: DictConfig) -> None:
-    run_suite(cfg)
+    run_suite(cfg, log=logging.getLogger(__name__).info)  # also into hydra/suite.log
 
 
 if __name__ == "__main__":
+    recipes.register_help_text(Path(__file__).resolve().parent / "config")
     main()

@@ -29,6 +29,7 @@ line_search_s, env_steps_per_s (pre + post env steps per second of collect_s), e
 from __future__ import annotations
 
 import contextlib
+import logging
 from collections.abc import Callable
 from pathlib import Path
 
@@ -37,6 +38,7 @@ import torch
 import tqdm
 from omegaconf import DictConfig
 
+from recipes import register_help_text
 from umrl.checkpoints import MAML_FORMAT, save_maml_checkpoint
 from umrl.configs import check_resume, validate
 from umrl.configs.maml import MAMLConfig
@@ -52,10 +54,13 @@ from umrl.runtime import (
     Checkpointer,
     check_finite,
     env_state,
+    finishing_loggers,
     load_env_state,
+    log_location,
     log_metrics,
     make_logger,
     rng_state,
+    run_summary,
     seed_everything,
     set_rng_state,
 )
@@ -174,6 +179,7 @@ def build(cfg: DictConfig):
     return proposal, policy, loss, trpo
 
 
+@finishing_loggers()
 def train(cfg: DictConfig) -> dict:
     """Meta-train as configured (checked against :class:`~umrl.configs.maml.MAMLConfig` first); return the last
     iteration's metrics and the final checkpoint path. ``resume=true`` restores the policy, the counters, every RNG
@@ -229,11 +235,17 @@ def train(cfg: DictConfig) -> dict:
     return {**metrics, "iteration": iteration, "checkpoint": str(path)}
 
 
+SUMMARY_KEYS = ("iteration", "train/return_pre", "train/return_post", "train/kl", "time/learn_s")
+"""What the command line prints when a run ends (every metric is in the logs)."""
+
+
 @hydra.main(version_base="1.3", config_path="config", config_name="maml")
 def main(cfg: DictConfig) -> None:
     result = train(cfg)
-    print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in result.items()})
+    logging.getLogger(__name__).info(run_summary(f"maml {cfg.env.name} finished", result, SUMMARY_KEYS,
+                                                 log_location(cfg.logger, cfg.output_dir)))
 
 
 if __name__ == "__main__":
+    register_help_text()
     main()

@@ -21,9 +21,13 @@ Skills are pinned per env copy with :meth:`~umrl.transforms.skill.SkillTransform
 it must infer its task from rewards), so ``"skill"`` ``[B, K]`` appears in rollouts for inspection only.
 
 Example:
-    >>> proposal = make_proposal("oracle", "point_nav", num_tasks=20, trajectories_per_task=40, seed=0)
+    >>> from umrl.modules.policy import make_gaussian_policy
+    >>> from umrl.rollout import collect
+    >>> proposal = make_proposal("oracle", "point_nav", num_tasks=20, trajectories_per_task=4, seed=0, horizon=10)
     >>> tasks = proposal.resample(torch.Generator().manual_seed(0))   # [20, 2] goals
-    >>> batch = collect(proposal.env, policy, num_tasks=20, horizon=100)
+    >>> batch = collect(proposal.env, make_gaussian_policy(2, 2, hidden=[16]), num_tasks=20, horizon=10)
+    >>> batch.batch_size                                              # [tasks, trajectories, steps]
+    torch.Size([20, 4, 10])
 """
 from __future__ import annotations
 

@@ -14,8 +14,9 @@ import pickle
 import random
 import re
 import warnings
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +28,9 @@ from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.record.loggers import Logger, get_logger
 
 LOGGER_BACKENDS = ("wandb", "csv", "none")
+
+_open_loggers: ContextVar[list[Logger] | None] = ContextVar("umrl_open_loggers", default=None)
+"""The loggers :func:`make_logger` made inside the innermost :func:`finishing_loggers` block."""
 
 
 def seed_everything(seed: int) -> torch.Generator:
@@ -120,6 +124,10 @@ def make_logger(logger_cfg: Mapping, *, exp_name: str, config: Any = None, log_d
     (wandb: ``offline`` by default, ``online`` to stream, ``disabled``; the ``WANDB_MODE`` environment variable wins).
     CSV logs go to ``<log_dir>/csv/<exp_name>/``; wandb runs to ``$WANDB_DIR/wandb`` if set, else
     ``<log_dir>/wandb`` (recipes pass their ``output_dir``: nothing lands in the current directory).
+
+    Every call starts a new wandb run, also while another one is open in this process (Hydra multirun, a Ray
+    worker running several jobs); :func:`close_logger` ends it, and inside a :func:`finishing_loggers` block that
+    happens when the block exits.
     """
     backend = logger_cfg.get("backend", "wandb")
     if backend not in LOGGER_BACKENDS:
@@ -131,6 +139,7 @@ def make_logger(logger_cfg: Mapping, *, exp_name: str, config: Any = None, log_d
     else:
         mode = os.environ.get("WANDB_MODE", logger_cfg.get("mode", "offline"))
         Path(log_dir).mkdir(parents=True, exist_ok=True)
+        # the mode goes to wandb.init only: TorchRL's own offline=True also sets WANDB_MODE for the whole process
         logger = get_logger(
             "wandb",
             logger_name=os.environ.get("WANDB_DIR") or str(log_dir),
@@ -138,13 +147,65 @@ def make_logger(logger_cfg: Mapping, *, exp_name: str, config: Any = None, log_d
             wandb_kwargs={
                 "project": logger_cfg.get("project", "umrl"),
                 "group": logger_cfg.get("group"),
-                "offline": mode == "offline",
                 "mode": mode,
+                "reinit": "create_new",  # wandb's default hands back the open run: two jobs would share it
             },
         )
+    opened = _open_loggers.get()
+    if opened is not None:
+        opened.append(logger)
     if config is not None:
         logger.log_hparams(to_container(config))
     return logger
+
+
+def close_logger(logger: Logger | None) -> None:
+    """End ``logger``'s wandb run (its files are complete afterwards); nothing to do for CSV or ``None``."""
+    experiment = getattr(logger, "experiment", None)
+    if experiment is not None and hasattr(experiment, "finish"):
+        experiment.finish()
+
+
+@contextmanager
+def finishing_loggers() -> Iterator[None]:
+    """Close every logger :func:`make_logger` makes inside the block when it exits, by an error too: one wandb run
+    per job however jobs are launched. Also a decorator: the recipes' ``train`` functions are wrapped in it."""
+    opened: list[Logger] = []
+    token = _open_loggers.set(opened)
+    try:
+        yield
+    finally:
+        _open_loggers.reset(token)
+        for logger in opened:
+            close_logger(logger)
+
+
+def log_location(logger_cfg: Mapping, log_dir: str | os.PathLike = ".") -> str:
+    """Where :func:`make_logger` with these arguments writes, in words (for the end-of-run summary)."""
+    backend = logger_cfg.get("backend", "wandb")
+    if backend == "none":
+        return "not logged (logger.backend=none)"
+    if backend == "csv":
+        return f"{Path(log_dir) / 'csv'} (CSV)"
+    mode = os.environ.get("WANDB_MODE", logger_cfg.get("mode", "offline"))
+    return f"{Path(os.environ.get('WANDB_DIR') or log_dir) / 'wandb'} (wandb, {mode})"
+
+
+def run_summary(title: str, result: Mapping[str, Any], keys: Sequence[str], logs: str) -> str:
+    """A few lines for the end of a run: ``title``, the ``keys`` of ``result`` it has (4 significant digits), its
+    ``"checkpoint"`` and where every metric was logged (``logs``, e.g. :func:`log_location`'s).
+
+    >>> print(run_summary("maml finished", {"iteration": 5, "train/kl": 0.00612, "checkpoint": "out/step_5.pt"},
+    ...                   ["iteration", "train/kl", "train/absent"], "out/wandb (wandb, offline)"))
+    maml finished: iteration 5 | train/kl 0.00612
+    checkpoint: out/step_5.pt
+    every metric: out/wandb (wandb, offline)
+    """
+    values = [f"{k} {result[k]:.4g}" if isinstance(result[k], float) else f"{k} {result[k]}" for k in keys if k in result]
+    lines = [f"{title}: {' | '.join(values)}"]
+    if result.get("checkpoint"):
+        lines.append(f"checkpoint: {result['checkpoint']}")
+    return "\n".join([*lines, f"every metric: {logs}"])
 
 
 def log_metrics(logger: Logger | None, metrics: Mapping[str, float], step: int) -> None:

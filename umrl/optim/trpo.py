@@ -12,12 +12,19 @@ policy updates. It is agnostic to what the surrogate is: it only needs
   KL on a subsample of the batch. Defaults to the ``kl`` returned by ``closure``. Or ``hvp() -> (v -> H v)``: a
   ready-made Hessian-vector product (MAML's Gauss-Newton form avoids third-order derivatives).
 
-Example:
+Example (a linear Gaussian policy's mean pulled towards targets, unit variance):
+    >>> from tensordict import TensorDict
+    >>> _ = torch.manual_seed(0)
     >>> policy = torch.nn.Linear(3, 2)
-    >>> params = TensorDict.from_module(policy)
-    >>> trpo = TRPOStep(params, max_kl=0.01)
-    >>> info = trpo(lambda: (surrogate(policy), kl(policy)))  # doctest: +SKIP
-    >>> info["accepted"], info["kl"], info["improvement"]  # doctest: +SKIP
+    >>> x, target = torch.randn(64, 3), torch.randn(64, 2)
+    >>> old_mean = policy(x).detach()
+    >>> def closure():  # (loss to minimise, mean KL(N(old_mean, I) || N(mean, I)))
+    ...     mean = policy(x)
+    ...     return ((mean - target) ** 2).mean(), 0.5 * ((mean - old_mean) ** 2).sum(-1).mean()
+    >>> trpo = TRPOStep(TensorDict.from_module(policy), max_kl=0.01)
+    >>> info = trpo(closure)
+    >>> info["accepted"] == 1.0, info["kl"] <= 0.01, info["improvement"] > 0
+    (True, True, True)
 
 The conjugate-gradient system is ``(H + damping * I) x = g`` with ``H`` the KL Hessian at the current parameters
 (exact when ``kl`` is taken through MAML's inner update, since the KL's gradient vanishes there). The full step is
