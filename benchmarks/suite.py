@@ -2,7 +2,7 @@
 
 Runs UML-DIAYN, UML-random, oracle, VIME-init, DIAYN-init and scratch on the chosen envs and seeds::
 
-    python benchmarks/suite.py profile=tiny                      # every method at toy budgets, ~2 min on 2 cores
+    python benchmarks/suite.py profile=tiny                      # every method at toy budgets (~140 CPU-seconds)
     python benchmarks/suite.py profile=quick                     # point_nav, reduced budgets, minutes on 2 cores
     python benchmarks/suite.py profile=reference envs=[point_nav]  # the reference code's settings
     python benchmarks/suite.py profile=quick launcher.ray_address=auto   # jobs as Ray tasks on a cluster

@@ -1,6 +1,6 @@
 """Quick start: DIAYN skills on point_nav -> MAML meta-trained on them (UML-DIAYN) -> meta-test on held-out goals.
 
-    python examples/quickstart.py [output_dir]      # about a minute on 2 CPU cores; default outputs/quickstart
+    python examples/quickstart.py [output_dir]      # ~35 s of CPU time; default outputs/quickstart
 """
 import sys
 
