@@ -6,6 +6,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
+from string import Formatter
 from typing import Any
 
 from umrl.configs.common import LoggerConfig, cudagraphs_errors
@@ -20,6 +21,7 @@ from umrl.configs.validate import (
     int_list,
     integer,
     mapping,
+    name,
     number,
     number_list,
     string,
@@ -70,13 +72,21 @@ def check_pretrain_seeds(name: str, value: Any) -> int | list[int] | None:
     return check_list(name, value, partial(check_int, min=0), what="integers >= 0 (one per entry of seeds)")
 
 
+TEMPLATE_FIELDS = ("env", "seed", "proposal")
+"""The fields a ``reuse`` path template may hold, each plain (``{seed}``: no attribute, index, conversion or spec)."""
+
+
 def _check_template(name: str, value: Any) -> str:
     check_str(name, value)
+    expected = "a path template using only plain {env}, {seed} and {proposal} fields"
     try:
-        value.format(env="point_nav", seed=0, proposal="oracle")
-    except (KeyError, IndexError, ValueError) as e:
-        raise InvalidValue(name, value, "a path template using only {env}, {seed} and {proposal}",
-                           note=f"{type(e).__name__}: {e}") from None
+        fields = [(f, spec, conv) for _, f, spec, conv in Formatter().parse(value) if f is not None]
+    except ValueError as e:
+        raise InvalidValue(name, value, expected, note=f"ValueError: {e}") from None
+    bad = [f"{{{f}{'!' + conv if conv else ''}{':' + spec if spec else ''}}}" for f, spec, conv in fields
+           if f not in TEMPLATE_FIELDS or spec or conv]
+    if bad:
+        raise InvalidValue(name, value, expected, note=f"refused fields {bad}")
     return value
 
 
@@ -154,7 +164,7 @@ class ReportConfig:
 class SuiteConfig:
     """Every key of ``benchmarks/config/suite.yaml`` (after a profile); the yaml's comments say what each does."""
 
-    profile_name: str = string()
+    profile_name: str = name()  # a folder name under outputs/suite
     envs: list[str] = choice_list(ENV_NAMES, min_len=1)
     methods: list[str] = choice_list(METHODS, min_len=1)
     seeds: list[int] = int_list(min=0, min_len=1, unique=True)
