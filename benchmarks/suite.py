@@ -60,7 +60,7 @@ from umrl.configs import ConfigError, validate
 from umrl.configs.maml import hvp_errors
 from umrl.configs.suite import RECIPE_SCHEMAS, SuiteConfig, needed_pretraining, pretrain_seeds, reuse_dir
 from umrl.configs.validate import check_partial
-from umrl.launch import Job, make_launcher, run_jobs
+from umrl.launch import Job, directory_lock, make_launcher, run_jobs
 from umrl.metatest import (
     CellSpec,
     Pretraining,
@@ -458,6 +458,11 @@ def run_suite(cfg: DictConfig, *, log: Callable[[str], None] = print) -> str:
     :class:`~umrl.configs.ConfigError` before any job starts.
     """
     cfg = validate(cfg, SuiteConfig)
+    with directory_lock(cfg.output_dir):  # a second suite in the same output_dir refuses, naming this one's pid
+        return _run_suite(cfg, log)
+
+
+def _run_suite(cfg: DictConfig, log: Callable[[str], None]) -> str:
     out = Path(cfg.output_dir).absolute()
     code = code_version()
     group = suite_group(cfg)

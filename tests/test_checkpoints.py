@@ -1,11 +1,10 @@
 """umrl.checkpoints: one format/version check for every loader and resume; saves carry the meta their loaders read."""
 import pytest
-import torch
 
 from umrl import checkpoints
+from umrl.checkpoint_file import write_state
 from umrl.checkpoints import DIAYN_FORMAT, MAML_FORMAT, VIME_FORMAT, CheckpointFormat
 from umrl.configs import check_resume
-from umrl.checkpoint_file import write_state
 from umrl.runtime import Checkpointer
 
 LOADERS = {
