@@ -41,9 +41,9 @@ def _gone(pid: int, timeout: float) -> bool:
 def test_a_second_suite_in_the_same_output_dir_refuses(tmp_path):
     with directory_lock(tmp_path) as lock:
         assert lock.read_text() == str(os.getpid())
-        with pytest.raises(DirectoryLocked, match=rf"output_dir: got .*in use by another suite \(pid {os.getpid()}"):
-            with directory_lock(tmp_path):
-                pass
+        with pytest.raises(DirectoryLocked, match=rf"output_dir: got .*in use by another suite \(pid {os.getpid()}"), \
+                directory_lock(tmp_path):
+            pass
     assert not lock.exists()
 
 
@@ -51,9 +51,9 @@ def test_a_stale_lock_is_taken_over_with_a_warning(tmp_path):
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
     (tmp_path / "suite.lock").write_text(str(dead.pid))
-    with pytest.warns(UserWarning, match=f"taking over the stale lock .* of pid {dead.pid}"):
-        with directory_lock(tmp_path) as lock:
-            assert lock.read_text() == str(os.getpid())
+    with pytest.warns(UserWarning, match=f"taking over the stale lock .* of pid {dead.pid}"), \
+            directory_lock(tmp_path) as lock:
+        assert lock.read_text() == str(os.getpid())
 
 
 def test_workers_exit_when_the_driver_is_killed(tmp_path):
@@ -61,9 +61,8 @@ def test_workers_exit_when_the_driver_is_killed(tmp_path):
     driver = subprocess.Popen([sys.executable, "-c", DRIVER, str(tmp_path)], stdout=subprocess.PIPE, text=True, env=env)
     try:
         worker = int(driver.stdout.readline())
-        with pytest.raises(DirectoryLocked, match=f"pid {driver.pid}"):
-            with directory_lock(tmp_path):
-                pass
+        with pytest.raises(DirectoryLocked, match=f"pid {driver.pid}"), directory_lock(tmp_path):
+            pass
         driver.send_signal(signal.SIGKILL)
         driver.wait()
         assert _gone(worker, timeout=10), f"worker {worker} still running after its driver was killed"
