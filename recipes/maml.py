@@ -203,6 +203,9 @@ def train(cfg: DictConfig) -> dict:
         iteration, env_steps = state["iteration"], state["env_steps"]
         set_rng_state(state["rng"], task=generator)
         load_env_state(env, state["env"])
+        if iteration >= cfg.iterations:  # as DIAYN and VIME: a resume with nothing to do is a mistake
+            raise ValueError(f"nothing to do: the checkpoint is at iteration {iteration} >= iterations={cfg.iterations}; "
+                             "raise iterations.")
 
     def save():
         return save_maml_checkpoint(checkpointer, meta=meta, policy=policy, iteration=iteration,
@@ -212,7 +215,7 @@ def train(cfg: DictConfig) -> dict:
         save()  # iteration 0: the initialisation before meta-training, the ablation's first point
     logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, config=cfg, log_dir=out_dir)
     metrics: dict[str, float] = {}
-    path = checkpointer.latest()  # a run resumed at its budget returns its last checkpoint
+    path = checkpointer.latest()
     progress = tqdm.tqdm(total=cfg.iterations, initial=iteration, disable=not cfg.progress, desc="meta-iterations")
     while iteration < cfg.iterations:
         metrics = meta_iteration(cfg, proposal, policy, loss, trpo, generator)

@@ -9,6 +9,7 @@ from pathlib import Path
 from string import Formatter
 from typing import Any
 
+from umrl.checkpoints import load_diayn_checkpoint, load_maml_checkpoint, load_vime_checkpoint
 from umrl.configs.common import LoggerConfig, cudagraphs_errors
 from umrl.configs.diayn import DIAYNConfig
 from umrl.configs.maml import MAMLConfig
@@ -240,9 +241,18 @@ def reuse_dir(cfg: Mapping, run: Pretraining, env: str, seed: int) -> Path | Non
     return Path(str(template).format(env=env, seed=seed, proposal=run.proposal)).absolute() if template else None
 
 
+def _reuse_meta(run: Pretraining, run_dir: Path) -> dict:
+    """The ``meta`` of the newest checkpoint in ``run_dir``, read with ``run``'s recipe's loader (a checkpoint of
+    another recipe, a corrupted or an old pickle file raises ``ValueError`` naming it)."""
+    loader = {"diayn": load_diayn_checkpoint, "maml": load_maml_checkpoint, "vime": load_vime_checkpoint}[run.recipe]
+    return loader(run_dir)["meta"]
+
+
 def _reuse_errors(cfg: dict) -> list[str]:
-    """A ``reuse`` template the suite would use must point at runs holding a checkpoint for every (env, seed)."""
+    """A ``reuse`` template the suite would use must point at runs holding a checkpoint for every (env, seed), of
+    the method's recipe, env and (MAML) proposal; a reused UML-DIAYN run must have as many skills as the DIAYN run."""
     errors = []
+    skills: dict[tuple[str, str, int], int] = {}
     for run in needed_pretraining(cfg["methods"]):
         template, key = cfg["pretrain"][run.recipe]["reuse"], f"pretrain.{run.recipe}.reuse"
         if isinstance(template, Mapping):
@@ -250,8 +260,29 @@ def _reuse_errors(cfg: dict) -> list[str]:
         for env in cfg["envs"]:
             for seed in sorted(set(pretrain_seeds(cfg))):
                 run_dir = reuse_dir(cfg, run, env, seed)
-                if run_dir is not None and Checkpointer(run_dir / "checkpoints").latest() is None:
+                if run_dir is None:
+                    continue
+                if Checkpointer(run_dir / "checkpoints").latest() is None:
                     errors.append(InvalidValue(
                         key, template, "a finished run directory holding checkpoints/step_*.pt",
                         note=f"env={env} seed={seed}: {run_dir} has no checkpoint").message())
+                    continue
+                expected = {"env": env, **({"proposal": run.proposal} if run.proposal else {})}
+                try:
+                    meta = _reuse_meta(run, run_dir)
+                except ValueError as e:
+                    errors.append(InvalidValue(key, template, f"a {run.kind} run", note=str(e).splitlines()[0]).message())
+                    continue
+                found = {k: meta.get(k) for k in expected}
+                if found != expected:
+                    errors.append(InvalidValue(key, template, f"a {run.kind} run with {expected}",
+                                               note=f"env={env} seed={seed}: {run_dir} holds {found}").message())
+                elif run.kind in ("diayn", "maml_diayn"):
+                    skills[run.kind, env, seed] = meta.get("num_skills")
+    for (kind, env, seed), count in skills.items():
+        diayn = skills.get(("diayn", env, seed))
+        if kind == "maml_diayn" and diayn is not None and count != diayn:
+            errors.append(InvalidValue("pretrain.maml.reuse", cfg["pretrain"]["maml"]["reuse"],
+                                       f"a UML-DIAYN run on the reused DIAYN run's {diayn} skills",
+                                       note=f"env={env} seed={seed}: it meta-trained on {count} skills").message())
     return errors
