@@ -19,7 +19,7 @@ CPU) or ``exact`` (double backward of the KL through the inner step).
 
 Logged per iteration: ``train/`` return_pre, return_post (mean undiscounted return of the pre/post-update
 trajectories), reward_mean/std/min/max (task rewards of the pre-update batch), kl, surrogate_before,
-improvement, backtracks (line-search trials; of them rejected_surrogate and rejected_kl), accepted, grad_norm,
+improvement, backtracks (line-search trials; of them rejected_surrogate and rejected_kl, of those nonfinite_kl), accepted, grad_norm,
 step_norm, log_std (θ's action log-std after the meta-step, mean over action dimensions); ``time/`` collect_s
 (rollouts + advantages), learn_s (inner adaptation for the post-update policy + TRPO meta-step), inner_s (that
 adaptation alone, built with the graph the meta-step differentiates through), the meta-step's parts objective_s (surrogate and KL through

@@ -1,9 +1,12 @@
 """Settings that would run to a clean exit without doing the work asked for are refused before any work."""
 import pytest
+import torch
+from tensordict import TensorDict
 
 import recipes
 from umrl.configs import ConfigError, validate
 from umrl.configs.diayn import DIAYNConfig
+from umrl.optim.trpo import TRPOStep
 from umrl.proposals import make_proposal
 
 
@@ -25,3 +28,20 @@ def test_a_random_proposal_needs_at_least_one_skill(num_skills):
     with pytest.raises(ValueError, match=rf"num_skills: got {num_skills}; expected null \(the env's default\) or an "
                                          r"integer >= 1"):
         make_proposal("random", "point_nav", num_tasks=2, trajectories_per_task=1, num_skills=num_skills)
+
+
+def test_trpo_warns_when_a_nan_kl_rejects_the_step():
+    params = TensorDict({"w": torch.ones(3, requires_grad=True)}, [])
+    target = torch.tensor([2.0, 0.0, -1.0])
+
+    def model_kl():
+        return 0.5 * (params["w"] - 1).pow(2).sum()
+
+    def closure():  # a sound surrogate whose measured KL is NaN away from the start
+        shift = params["w"] - 1
+        return (shift * -target).sum(), model_kl() + torch.where(shift.abs().sum() > 0, torch.nan, 0.0)
+
+    with pytest.warns(RuntimeWarning, match="TRPO step rejected: the KL was not finite at 5 of 5 line-search trials"):
+        info = TRPOStep(params, max_kl=0.01, max_backtracks=5)(closure, hvp_closure=model_kl)
+    assert info["accepted"] == 0.0 and info["nonfinite_kl"] == 5
+    assert torch.equal(params["w"], torch.ones(3))
