@@ -50,6 +50,7 @@ import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import hydra
@@ -68,6 +69,7 @@ from umrl.metatest import (
     ablation_table,
     arm_label,
     arm_styles,
+    cell_finished,
     curves_from_rows,
     default_lr_schedule,
     get_method,
@@ -296,7 +298,7 @@ def plan(cfg: DictConfig, group: str, code: str = "", runs: Mapping | None = Non
                     settings = cell_spec(cfg, method.name, env, seed, checkpoint, lr_schedule=schedule)
                     spec = keyed_cell(settings, checkpoint_id, code, out / "cells" / env / method.name / f"seed{seed}{suffix}")
                     key = f"cell/{env}/{method.name}/seed{seed}{suffix.replace('.', '/')}"
-                    jobs[key] = Job(key=key, fn=run_cell, args=(spec,), deps=deps, done=Path(spec.output).exists,
+                    jobs[key] = Job(key=key, fn=run_cell, args=(spec,), deps=deps, done=partial(cell_finished, spec.output),
                                     what=f"meta-test of {method.name} on {env}, seed {seed} -> {spec.output}",
                                     log=out / "logs" / f"cell_{env}_{method.name}_seed{seed}{suffix}.log")
     # Pre-training first, runs others depend on before them (DIAYN before MAML(diayn)), so the critical path starts at once.
@@ -331,7 +333,7 @@ def plan_ablation(cfg: DictConfig, runs: Mapping, code: str = "") -> list[Job]:
                     spec = keyed_cell(settings, checkpoint_identity(run, file), code,
                                       out / "ablation" / env / name / f"seed{seed}" / f"iter{iteration}")
                     key = f"ablation/{env}/{name}/seed{seed}/iter{iteration}"
-                    jobs.append(Job(key=key, fn=run_cell, args=(spec,), done=Path(spec.output).exists,
+                    jobs.append(Job(key=key, fn=run_cell, args=(spec,), done=partial(cell_finished, spec.output),
                                     what=f"ablation meta-test of {name} on {env}, seed {seed}, {file.name}",
                                     log=out / "logs" / f"ablation_{env}_{name}_seed{seed}_iter{iteration}.log"))
     return jobs

@@ -6,6 +6,7 @@ from tensordict import TensorDict
 import recipes
 from umrl.configs import ConfigError, validate
 from umrl.configs.diayn import DIAYNConfig
+from umrl.metatest import cell_finished, read_rows
 from umrl.optim.trpo import TRPOStep
 from umrl.proposals import make_proposal
 
@@ -45,3 +46,31 @@ def test_trpo_warns_when_a_nan_kl_rejects_the_step():
         info = TRPOStep(params, max_kl=0.01, max_backtracks=5)(closure, hvp_closure=model_kl)
     assert info["accepted"] == 0.0 and info["nonfinite_kl"] == 5
     assert torch.equal(params["w"], torch.ones(3))
+
+
+HEADER = "method,env,seed,task,step,return\n"
+
+
+@pytest.mark.parametrize("text, message", [
+    ("", "no rows"), (HEADER, "no rows"), (HEADER + "scratch,point_nav,0,0,0,nan\n", "return nan at seed 0"),
+    ("method,env\nscratch,point_nav\n", "no column 'seed'"), (HEADER + "scratch,point_nav,0,0,x,1.0\n", "ValueError"),
+])
+def test_a_bad_cached_cell_is_named_and_recomputed(tmp_path, text, message):
+    cell = tmp_path / "seed0-abc.csv"
+    cell.write_text(text)
+    cell.with_suffix(".json").write_text("{}")
+    with pytest.raises(ValueError, match=f"cannot read results file {cell}: .*{message}"):
+        read_rows([cell])
+    with pytest.warns(UserWarning, match=f"recomputing the cell: cannot read results file {cell}"):
+        assert not cell_finished(cell)
+    assert not cell.exists() and not cell.with_suffix(".json").exists()
+
+
+def test_a_corrupt_cell_json_is_named_and_recomputed(tmp_path):
+    cell = tmp_path / "seed0-abc.csv"
+    cell.write_text(HEADER + "scratch,point_nav,0,0,0,1.5\n")
+    assert cell_finished(cell) and read_rows([cell])[0]["return"] == 1.5
+    cell.with_suffix(".json").write_text('{"lr": 0.0')
+    with pytest.warns(UserWarning, match="recomputing the cell"):
+        assert not cell_finished(cell)
+    assert not cell.exists()
