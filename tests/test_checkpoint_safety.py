@@ -136,3 +136,15 @@ def test_convert_reads_a_trusted_old_file_with_a_warning_and_strips_paths(tmp_pa
     assert state["rng"]["numpy"][1].dtype == np.uint32 and torch.equal(state["policy"]["w"], torch.ones(2))
     assert "/tmp" not in (tmp_path / "new" / "checkpoints" / "config.yaml").read_text()
     assert os.path.exists(old)
+
+
+def test_a_suite_cell_does_not_unpickle_a_reused_run(tmp_path):
+    from umrl.metatest import CellSpec, run_cell
+
+    marker = tmp_path / "marker"
+    path = _malicious(tmp_path / "run", marker)
+    spec = CellSpec(method="oracle", env="point_nav", seed=0, output=str(tmp_path / "cell.csv"),
+                    checkpoint=str(tmp_path / "run"), num_tasks=1)
+    with pytest.raises(LegacyCheckpointError, match=str(path)):
+        run_cell(spec)
+    assert not marker.exists() and not (tmp_path / "cell.csv").exists()
