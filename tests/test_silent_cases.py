@@ -6,7 +6,7 @@ from tensordict import TensorDict
 import recipes
 from umrl.configs import ConfigError, validate
 from umrl.configs.diayn import DIAYNConfig
-from umrl.metatest import cell_finished, read_rows
+from umrl.metatest import cell_finished, read_rows, run_matrix, summary_table
 from umrl.optim.trpo import TRPOStep
 from umrl.proposals import make_proposal
 
@@ -74,3 +74,14 @@ def test_a_corrupt_cell_json_is_named_and_recomputed(tmp_path):
     with pytest.warns(UserWarning, match="recomputing the cell"):
         assert not cell_finished(cell)
     assert not cell.exists()
+
+
+def test_a_nan_or_a_missing_step_in_a_table_is_an_error():
+    rows = [{"method": "scratch", "env": "point_nav", "seed": 0, "task": t, "step": k, "return": 1.0,
+             "lr_schedule": "constant"} for t in (0, 1) for k in (0, 1)]
+    assert run_matrix(rows, env="point_nav", method="scratch").shape == (2, 2)
+    rows[3]["return"] = float("nan")
+    with pytest.raises(ValueError, match=r"'scratch' on 'point_nav': seed 0, task 1 has non-finite return \{1: nan\}"):
+        summary_table(rows)
+    with pytest.raises(ValueError, match=r"seed 0, task 1 has steps \[0\], others \[0, 1\]"):
+        run_matrix(rows[:3], env="point_nav", method="scratch")

@@ -147,7 +147,7 @@ def cell_finished(path: str | os.PathLike) -> bool:
 
 def run_matrix(rows: Iterable[Mapping], *, env: str, method: str, value: str = "return") -> np.ndarray:
     """``[runs, K + 1]`` returns (or another ``value`` column) of one (env, arm): one row per (seed, task), sorted;
-    ``method`` is an arm label."""
+    ``method`` is an arm label. A run missing steps or holding a non-finite value raises ``ValueError`` naming it."""
     table: dict[tuple[int, int], dict[int, float]] = {}
     for row in rows:
         if row["env"] == env and _label(row) == method:
@@ -155,6 +155,13 @@ def run_matrix(rows: Iterable[Mapping], *, env: str, method: str, value: str = "
     if not table:
         raise ValueError(f"no results for method {method!r} on env {env!r}.")
     steps = sorted(next(iter(table.values())))
+    for (seed, task), values in sorted(table.items()):
+        if sorted(values) != steps:
+            raise ValueError(f"{method!r} on {env!r}: seed {seed}, task {task} has steps {sorted(values)}, others "
+                             f"{steps} (a partial results file?)")
+        bad = {k: v for k, v in values.items() if not np.isfinite(v)}
+        if bad:
+            raise ValueError(f"{method!r} on {env!r}: seed {seed}, task {task} has non-finite {value} {bad}")
     return np.array([[table[run][k] for k in steps] for run in sorted(table)])
 
 
