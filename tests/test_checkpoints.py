@@ -53,6 +53,28 @@ def test_resume_checks_format_and_meta(tmp_path):
         VIME_FORMAT.load_for_resume(checkpointer, {})
 
 
+@pytest.mark.parametrize("fmt", list(LOADERS), ids=lambda f: f.what)
+def test_a_checkpoint_of_another_observation_size_is_refused_by_every_loader(tmp_path, fmt):
+    """A run of the 107-D ant (x-y in the observation) does not load for today's 105-D ant: one clear error."""
+    meta = {**dict.fromkeys(fmt.meta_keys), "env": "ant", "obs_dim": 107}
+    fmt.save(Checkpointer(tmp_path / "old" / "checkpoints"), 3, meta)
+    for name in LOADERS[fmt]:
+        with pytest.raises(ValueError, match=r"observation size: got 107 \(.*checkpoint .*step_3\.pt\); expected "
+                                             r"105, the observation size of env 'ant'"):
+            getattr(checkpoints, name)(tmp_path / "old")
+    fmt.save(Checkpointer(tmp_path / "new" / "checkpoints"), 3, {**meta, "obs_dim": 105})
+    assert fmt.load(tmp_path / "new")["meta"]["obs_dim"] == 105
+
+
+def test_meta_test_refuses_an_old_ant_checkpoint_before_any_work(tmp_path):
+    from umrl.metatest import load_initialisation
+
+    MAML_FORMAT.save(Checkpointer(tmp_path / "checkpoints"), 1,
+                     {**dict.fromkeys(MAML_FORMAT.meta_keys), "env": "ant", "obs_dim": 107})
+    with pytest.raises(ValueError, match=r"observation size: got 107 .*expected 105"):
+        load_initialisation("oracle", "ant", tmp_path, seed=0)
+
+
 def test_public_names():
     expected = {"load_diayn_checkpoint", "load_discriminator", "load_skill_policy", "load_maml_checkpoint",
                 "load_maml_policy", "load_vime_checkpoint", "load_vime_dynamics", "load_vime_policy",

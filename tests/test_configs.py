@@ -148,6 +148,9 @@ NO_GPU = pytest.mark.skipif(torch.cuda.is_available(), reason="device=cuda is va
      "trpo.hvp=analytic (it differentiates the task-batched MLP; trpo.hvp=gauss_newton takes any)")),
     ("maml", ["policy.hidden=[]"], "policy.hidden: got []; expected a non-empty list of integers >= 1"),
     ("vime", ["env.name=walker"], "env.name: got 'walker'; expected one of 'point_nav', 'half_cheetah', 'ant'"),
+    # a removed env (ant's reward is now the MAML code's, which this ablation env used to carry)
+    ("maml", ["env.name=ant_maml_reward"],
+     "env.name: got 'ant_maml_reward'; expected one of 'point_nav', 'half_cheetah', 'ant'"),
     ("vime", ["logger.backend=tensorboard"], ("logger.backend: got 'tensorboard'; expected one of 'wandb', 'csv', "
      "'none'")),
     ("vime", ["dynamics.holdout_fraction=1"], "dynamics.holdout_fraction: got 1; expected a finite number in (0, 1)"),

@@ -34,6 +34,7 @@ import torch
 from torchrl.envs import TransformedEnv
 
 from umrl.envs import TaskReward, get_env_spec, make_env, make_task_env
+from umrl.envs.registry import check_observation_size
 from umrl.modules.discriminator import make_discriminator
 from umrl.transforms.discriminator_reward import DiscriminatorReward
 from umrl.transforms.skill import SkillTransform
@@ -154,11 +155,8 @@ def make_proposal(
         from umrl.checkpoints import load_discriminator
 
         discriminator, num_skills, trained_obs_dim = load_discriminator(diayn_checkpoint)
-        if trained_obs_dim != spec.obs_dim:  # the checkpoint's env observation, not D's input width (chosen dims)
-            raise ValueError(
-                f"the discriminator was trained on {trained_obs_dim}-D observations but {env_name} has "
-                f"{spec.obs_dim}-D ones: was the DIAYN checkpoint trained on another env?"
-            )
+        # the checkpoint's env observation, not D's input width (chosen dims)
+        check_observation_size(env_name, trained_obs_dim, f"the discriminator of {diayn_checkpoint}")
     else:
         num_skills = num_skills or spec.num_skills
         discriminator = make_discriminator(spec.obs_dim, num_skills, hidden=discriminator_hidden, seed=seed)
