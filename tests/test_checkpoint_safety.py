@@ -122,7 +122,7 @@ def test_convert_reads_a_trusted_old_file_with_a_warning_and_strips_paths(tmp_pa
     monkeypatch.chdir(tmp_path)
     old = tmp_path / "old" / "step_3.pt"
     old.parent.mkdir()
-    torch.save({"format": "umrl.maml.v1", "meta": {"env": "point_nav"}, "policy": {"w": torch.ones(2)},
+    torch.save({"format": "umrl.maml.v1", "meta": {"env": "point_nav", "obs_dim": 2}, "policy": {"w": torch.ones(2)},
                 "rng": {"numpy": ("MT19937", np.arange(3, dtype=np.uint32), 0, 0, 0.0)},
                 "config": {"output_dir": "/tmp/somewhere/seed0", "diayn_checkpoint": "/work/x/diayn/seed0-abc"}}, old)
     with pytest.raises(ValueError, match="absolute paths.*diayn_checkpoint"), warnings.catch_warnings():

@@ -180,7 +180,7 @@ def test_missing_reuse_path_is_refused_before_any_work(tmp_path):
     assert (f"pretrain.maml.reuse: got '{template}' (env=point_nav seed=0: {run} has no checkpoint); "
             "expected a finished run directory holding checkpoints/step_*.pt") in info.value.errors
     for proposal in ("diayn", "random", "oracle"):  # a run with a checkpoint of the method is accepted
-        meta = {**dict.fromkeys(MAML_FORMAT.meta_keys, 1), "env": "point_nav", "proposal": proposal}
+        meta = {**dict.fromkeys(MAML_FORMAT.meta_keys, 1), "env": "point_nav", "proposal": proposal, "obs_dim": 2}
         MAML_FORMAT.save(Checkpointer(tmp_path / f"maml_{proposal}" / "seed0" / "checkpoints"), 20, meta)
     validate(cfg, SuiteConfig)
 

@@ -9,6 +9,7 @@ from umrl.checkpoints import DIAYN_FORMAT, MAML_FORMAT
 from umrl.configs import ConfigError, validate
 from umrl.configs.diayn import DIAYNConfig
 from umrl.configs.suite import SuiteConfig
+from umrl.envs import get_env_spec
 from umrl.runtime import Checkpointer, make_logger
 
 TINY = ["num_tasks=2", "protocol.num_steps=1", "protocol.num_trajectories=2", "protocol.horizon=10", "report.steps=[0]",
@@ -42,7 +43,8 @@ def test_reuse_templates_hold_plain_fields_only(tmp_path, template):
 
 
 def _maml_run(directory, env="point_nav", proposal="oracle", num_skills=20):
-    meta = {**dict.fromkeys(MAML_FORMAT.meta_keys, 1), "env": env, "proposal": proposal, "num_skills": num_skills}
+    meta = {**dict.fromkeys(MAML_FORMAT.meta_keys, 1), "env": env, "proposal": proposal, "num_skills": num_skills,
+            "obs_dim": get_env_spec(env).obs_dim}
     MAML_FORMAT.save(Checkpointer(directory / "checkpoints"), 5, meta, {"seed": 0}, policy={"w": torch.ones(1)})
 
 
@@ -55,7 +57,7 @@ def test_a_reused_run_must_be_of_the_methods_proposal_env_and_skills(tmp_path):
                f"pretrain.diayn.reuse='{tmp_path}/oracle'")
     _maml_run(tmp_path / "uml", proposal="diayn", num_skills=20)
     DIAYN_FORMAT.save(Checkpointer(tmp_path / "diayn" / "checkpoints"), 5,
-                      {**dict.fromkeys(DIAYN_FORMAT.meta_keys), "env": "point_nav", "num_skills": 50}, {"seed": 0})
+                      {**dict.fromkeys(DIAYN_FORMAT.meta_keys), "env": "point_nav", "num_skills": 50, "obs_dim": 2}, {"seed": 0})
     with pytest.raises(ConfigError, match=r"meta-trained on 20 skills\); expected a UML-DIAYN run on the reused DIAYN run's 50 skills"):
         _suite(tmp_path / "out", "methods=[uml_diayn]", f"pretrain.maml.reuse='{tmp_path}/uml'",
                f"pretrain.diayn.reuse='{tmp_path}/diayn'")

@@ -165,7 +165,7 @@ def test_ray_launcher_runs_two_cells(tmp_path):
 
 def test_reuse_templates_point_the_plan_at_finished_runs(tmp_path):
     for proposal in ("random", "oracle"):
-        meta = {**dict.fromkeys(MAML_FORMAT.meta_keys, 1), "env": "point_nav", "proposal": proposal}
+        meta = {**dict.fromkeys(MAML_FORMAT.meta_keys, 1), "env": "point_nav", "proposal": proposal, "obs_dim": 2}
         MAML_FORMAT.save(Checkpointer(tmp_path / "runs" / proposal / "point_nav" / "checkpoints"), 5, meta)
     template = f"{tmp_path}/runs/{{proposal}}/{{env}}"
     cfg = _cfg(tmp_path / "out", "seeds=[0]", "methods=[uml_random,oracle]", f"pretrain.maml.reuse='{template}'")
