@@ -52,6 +52,7 @@ import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import hydra
@@ -62,7 +63,7 @@ from umrl.configs import ConfigError, validate
 from umrl.configs.maml import hvp_errors
 from umrl.configs.suite import RECIPE_SCHEMAS, SuiteConfig, needed_pretraining, pretrain_seeds, reuse_dir
 from umrl.configs.validate import check_partial, fill_env_defaults
-from umrl.launch import Job, make_launcher, run_jobs
+from umrl.launch import Job, directory_lock, make_launcher, run_jobs
 from umrl.metatest import (
     CellSpec,
     Pretraining,
@@ -70,6 +71,7 @@ from umrl.metatest import (
     ablation_table,
     arm_label,
     arm_styles,
+    cell_finished,
     curves_from_rows,
     default_lr_schedule,
     get_method,
@@ -306,7 +308,7 @@ def plan(cfg: DictConfig, group: str, code: str = "", runs: Mapping | None = Non
                     settings = cell_spec(cfg, method.name, env, seed, checkpoint, lr_schedule=schedule)
                     spec = keyed_cell(settings, checkpoint_id, code, out / "cells" / env / method.name / f"seed{seed}{suffix}")
                     key = f"cell/{env}/{method.name}/seed{seed}{suffix.replace('.', '/')}"
-                    jobs[key] = Job(key=key, fn=run_cell, args=(spec,), deps=deps, done=Path(spec.output).exists,
+                    jobs[key] = Job(key=key, fn=run_cell, args=(spec,), deps=deps, done=partial(cell_finished, spec.output),
                                     what=f"meta-test of {method.name} on {env}, seed {seed} -> {spec.output}",
                                     log=out / "logs" / f"cell_{env}_{method.name}_seed{seed}{suffix}.log")
     # Pre-training first, runs others depend on before them (DIAYN before MAML(diayn)), so the critical path starts at once.
@@ -341,7 +343,7 @@ def plan_ablation(cfg: DictConfig, runs: Mapping, code: str = "") -> list[Job]:
                     spec = keyed_cell(settings, checkpoint_identity(run, file), code,
                                       out / "ablation" / env / name / f"seed{seed}" / f"iter{iteration}")
                     key = f"ablation/{env}/{name}/seed{seed}/iter{iteration}"
-                    jobs.append(Job(key=key, fn=run_cell, args=(spec,), done=Path(spec.output).exists,
+                    jobs.append(Job(key=key, fn=run_cell, args=(spec,), done=partial(cell_finished, spec.output),
                                     what=f"ablation meta-test of {name} on {env}, seed {seed}, {file.name}",
                                     log=out / "logs" / f"ablation_{env}_{name}_seed{seed}_iter{iteration}.log"))
     return jobs
@@ -465,6 +467,11 @@ def run_suite(cfg: DictConfig, *, log: Callable[[str], None] = print) -> str:
     :class:`~umrl.configs.ConfigError` before any job starts.
     """
     cfg = validate(cfg, SuiteConfig)
+    with directory_lock(cfg.output_dir):  # a second suite in the same output_dir refuses, naming this one's pid
+        return _run_suite(cfg, log)
+
+
+def _run_suite(cfg: DictConfig, log: Callable[[str], None]) -> str:
     out = Path(cfg.output_dir).absolute()
     code = code_version()
     group = suite_group(cfg)

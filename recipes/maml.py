@@ -19,7 +19,7 @@ CPU) or ``exact`` (double backward of the KL through the inner step).
 
 Logged per iteration: ``train/`` return_pre, return_post (mean undiscounted return of the pre/post-update
 trajectories), reward_mean/std/min/max (task rewards of the pre-update batch), kl, surrogate_before,
-improvement, backtracks (line-search trials; of them rejected_surrogate and rejected_kl), accepted, grad_norm,
+improvement, backtracks (line-search trials; of them rejected_surrogate and rejected_kl, of those nonfinite_kl), accepted, grad_norm,
 step_norm, log_std (θ's action log-std after the meta-step, mean over action dimensions); ``time/`` collect_s
 (rollouts + advantages), learn_s (inner adaptation for the post-update policy + TRPO meta-step), inner_s (that
 adaptation alone, built with the graph the meta-step differentiates through), the meta-step's parts objective_s (surrogate and KL through
@@ -209,6 +209,9 @@ def train(cfg: DictConfig) -> dict:
         iteration, env_steps = state["iteration"], state["env_steps"]
         set_rng_state(state["rng"], task=generator)
         load_env_state(env, state["env"])
+        if iteration >= cfg.iterations:  # as DIAYN and VIME: a resume with nothing to do is a mistake
+            raise ValueError(f"nothing to do: the checkpoint is at iteration {iteration} >= iterations={cfg.iterations}; "
+                             "raise iterations.")
 
     def save():
         return save_maml_checkpoint(checkpointer, meta=meta, policy=policy, iteration=iteration,
@@ -218,7 +221,7 @@ def train(cfg: DictConfig) -> dict:
         save()  # iteration 0: the initialisation before meta-training, the ablation's first point
     logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, config=cfg, log_dir=out_dir)
     metrics: dict[str, float] = {}
-    path = checkpointer.latest()  # a run resumed at its budget returns its last checkpoint
+    path = checkpointer.latest()
     progress = tqdm.tqdm(total=cfg.iterations, initial=iteration, disable=not cfg.progress, desc="meta-iterations")
     while iteration < cfg.iterations:
         metrics = meta_iteration(cfg, proposal, policy, loss, trpo, generator)

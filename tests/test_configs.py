@@ -9,6 +9,7 @@ import torch
 from omegaconf import OmegaConf
 from script_loading import REPO, compose_config
 
+from umrl.checkpoints import MAML_FORMAT
 from umrl.configs import ConfigError, check_resume, resume_diff, validate
 from umrl.configs.diayn import DIAYNConfig
 from umrl.configs.maml import MAMLConfig
@@ -16,6 +17,7 @@ from umrl.configs.suite import SuiteConfig
 from umrl.configs.validate import check_partial
 from umrl.configs.vime import VIMEConfig
 from umrl.envs import ENV_NAMES
+from umrl.runtime import Checkpointer
 
 RECIPES = {"diayn": DIAYNConfig, "maml": MAMLConfig, "vime": VIMEConfig}
 SCHEMAS = {**RECIPES, "suite": SuiteConfig}
@@ -181,9 +183,9 @@ def test_missing_reuse_path_is_refused_before_any_work(tmp_path):
     run = tmp_path / "maml_diayn" / "seed0"
     assert (f"pretrain.maml.reuse: got '{template}' (env=point_nav seed=0: {run} has no checkpoint); "
             "expected a finished run directory holding checkpoints/step_*.pt") in info.value.errors
-    for proposal in ("diayn", "random", "oracle"):  # a run with a checkpoint is accepted
-        (tmp_path / f"maml_{proposal}" / "seed0" / "checkpoints").mkdir(parents=True)
-        (tmp_path / f"maml_{proposal}" / "seed0" / "checkpoints" / "step_20.pt").touch()
+    for proposal in ("diayn", "random", "oracle"):  # a run with a checkpoint of the method is accepted
+        meta = {**dict.fromkeys(MAML_FORMAT.meta_keys, 1), "env": "point_nav", "proposal": proposal, "obs_dim": 2}
+        MAML_FORMAT.save(Checkpointer(tmp_path / f"maml_{proposal}" / "seed0" / "checkpoints"), 20, meta)
     validate(cfg, SuiteConfig)
 
 

@@ -42,6 +42,7 @@ from umrl.envs.registry import check_observation_size
 from umrl.modules.discriminator import make_discriminator
 from umrl.transforms.discriminator_reward import DiscriminatorReward
 from umrl.transforms.skill import SkillTransform
+from umrl.validation import InvalidValue
 
 PROPOSALS = ("diayn", "random", "oracle", "random_arena")
 RANDOM_ARENA = 1.0
@@ -139,6 +140,8 @@ def make_proposal(
         raise ValueError(f"unknown proposal {name!r}; valid choices: {list(PROPOSALS)}.")
     if trajectories_per_task < 1 or (num_tasks is not None and num_tasks < 1):
         raise ValueError(f"need num_tasks >= 1 and trajectories_per_task >= 1, got {num_tasks} and {trajectories_per_task}.")
+    if num_skills is not None and (isinstance(num_skills, bool) or not isinstance(num_skills, int) or num_skills < 1):
+        raise InvalidValue("num_skills", num_skills, "null (the env's default) or an integer >= 1")
     n = trajectories_per_task
     spec = get_env_spec(env_name)
     if name == "random_arena" and arena is None:

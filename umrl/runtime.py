@@ -2,15 +2,14 @@
 
 Loggers are TorchRL's (:func:`torchrl.record.loggers.get_logger`): ``wandb`` in offline mode by default (runs land in
 ``<output_dir>/wandb/offline-run-*``; publish them later with ``wandb sync``), ``csv`` as a dependency-free
-alternative, ``none`` for tests. Checkpoints are ``torch.save`` files written atomically, with the resolved config
-beside them (their formats, saving and checked loading live in :mod:`umrl.checkpoints`); :func:`rng_state` /
-:func:`set_rng_state` and :func:`env_state` / :func:`load_env_state` capture what a faithful resume restores.
+alternative, ``none`` for tests. Checkpoints are :mod:`umrl.checkpoint_file` files (data only, hash-checked)
+written atomically, with the resolved config beside them (their formats, saving and checked loading live in
+:mod:`umrl.checkpoints`); :func:`rng_state` / :func:`set_rng_state` and :func:`env_state` / :func:`load_env_state` capture what a faithful resume restores.
 """
 from __future__ import annotations
 
 import math
 import os
-import pickle
 import random
 import re
 import warnings
@@ -26,6 +25,9 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl.data import ReplayBuffer
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.record.loggers import Logger, get_logger
+
+from umrl.checkpoint_file import CheckpointError, read_state, write_state
+from umrl.validation import check_name
 
 LOGGER_BACKENDS = ("wandb", "csv", "none")
 
@@ -129,6 +131,7 @@ def make_logger(logger_cfg: Mapping, *, exp_name: str, config: Any = None, log_d
     worker running several jobs); :func:`close_logger` ends it, and inside a :func:`finishing_loggers` block that
     happens when the block exits.
     """
+    check_name("logger.exp_name", exp_name)  # a folder under <log_dir>/csv, never a path out of it
     backend = logger_cfg.get("backend", "wandb")
     if backend not in LOGGER_BACKENDS:
         raise ValueError(f"unknown logger backend {backend!r}; valid choices: {list(LOGGER_BACKENDS)}.")
@@ -248,27 +251,12 @@ def check_finite(losses: Mapping[str, torch.Tensor], where: str) -> None:
         )
 
 
-class CheckpointError(ValueError):
-    """A checkpoint file that cannot be read (truncated, empty, not a ``torch.save`` file); names the file."""
-
-
-def read_checkpoint(path: str | os.PathLike, *, mmap: bool = False) -> Any:
-    """``torch.load`` of ``path`` on the CPU; a truncated, empty or foreign file raises :class:`CheckpointError`
-    naming it (instead of ``PytorchStreamReader failed`` / ``EOFError`` without a path). ``mmap=True`` maps the
-    tensors instead of reading them (loaders that keep a network and skip the replay buffers). An error raised by
-    the code unpickling it (a class that moved or changed) propagates as it is: the file is fine."""
-    path = Path(path)
-    try:
-        return torch.load(path, map_location="cpu", weights_only=False, mmap=mmap)
-    except (RuntimeError, EOFError, OSError, ValueError, pickle.UnpicklingError) as e:
-        if isinstance(e, FileNotFoundError):
-            raise
-        size = path.stat().st_size if path.is_file() else 0
-        raise CheckpointError(
-            f"cannot read checkpoint {path} ({size} bytes): {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
-            " -- the file is truncated, empty or not a torch.save file (a run killed while copying it?); delete it to "
-            "resume from the previous checkpoint."
-        ) from e
+def read_checkpoint(path: str | os.PathLike) -> Any:
+    """The state saved at ``path`` (:mod:`umrl.checkpoint_file`: tensors as data, hash checked; nothing is
+    unpickled), tensors on the CPU; a truncated, corrupted, empty or foreign file raises :class:`CheckpointError`
+    naming it, a torch.save pickle of older umrl versions its subclass
+    :class:`~umrl.checkpoint_file.LegacyCheckpointError` (``python -m umrl.checkpoints.convert`` a trusted one)."""
+    return read_state(path)
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:
@@ -323,7 +311,7 @@ class Checkpointer:
         self.directory.mkdir(parents=True, exist_ok=True)
         path = self.directory / f"step_{step}.pt"
         tmp = path.with_suffix(".pt.tmp")
-        torch.save(dict(state), tmp)
+        write_state(state, tmp)
         os.replace(tmp, path)
         if config is not None:
             write_text_atomic(self.directory / "config.yaml", OmegaConf.to_yaml(OmegaConf.create(to_container(config))))

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections.abc import Callable
 
 import torch
@@ -108,7 +109,8 @@ class TRPOStep:
     Calling the step returns a dict of floats: ``surrogate_before``, ``surrogate_after``, ``improvement``
     (before − after, positive is better), ``kl`` (measured at the accepted point, 0 if rejected), ``accepted``
     (1.0/0.0), ``backtracks`` (trials evaluated), of them ``rejected_surrogate`` (no improvement) and ``rejected_kl``
-    (KL over ``max_kl``; a trial can fail both), ``step_norm``, ``grad_norm``, and wall-clock seconds
+    (KL over ``max_kl`` or not finite; a trial can fail both), of those ``nonfinite_kl`` (a NaN/inf KL: a step
+    rejected for it also warns, ``RuntimeWarning``), ``step_norm``, ``grad_norm``, and wall-clock seconds
     ``direction_s`` (gradient, Hessian-vector product set-up and ``cg_iters`` conjugate-gradient products), of it
     ``cg_s`` (the conjugate-gradient products alone), and ``line_search_s`` (the trials). They end at a ``.item()``
     the step makes anyway, so on CUDA they include the queued work; ``cg_s`` starts after one synchronisation (a
@@ -220,6 +222,7 @@ class TRPOStep:
             "backtracks": 0.0,
             "rejected_surrogate": 0.0,
             "rejected_kl": 0.0,
+            "nonfinite_kl": 0.0,
             "step_norm": 0.0,
             "direction_s": line_search_start - direction_start,
             "cg_s": line_search_start - cg_start,
@@ -239,6 +242,7 @@ class TRPOStep:
             too_far = not new_kl <= self.max_kl  # a NaN KL too
             info["rejected_surrogate"] += worse
             info["rejected_kl"] += too_far
+            info["nonfinite_kl"] += not math.isfinite(new_kl)
             if not (worse or too_far):
                 info.update(
                     surrogate_after=new_loss,
@@ -251,4 +255,8 @@ class TRPOStep:
                 return info
         self._set(saved, None)
         info["line_search_s"] = time.perf_counter() - line_search_start
+        if info["nonfinite_kl"]:
+            warnings.warn(f"TRPO step rejected: the KL was not finite at {info['nonfinite_kl']:.0f} of "
+                          f"{info['backtracks']:.0f} line-search trials (NaN/inf policy outputs?); the parameters are "
+                          "unchanged.", RuntimeWarning, stacklevel=2)
         return info
