@@ -10,19 +10,29 @@ resumption are the library's (:mod:`umrl.trainers.diayn`).
 """
 from __future__ import annotations
 
+import logging
+
 import hydra
 from omegaconf import DictConfig
 
 from umrl.process import tune_process
+from umrl.runtime import log_location, run_summary
+from umrl.trainers.config import register_help_text
 from umrl.trainers.diayn import train
+
+SUMMARY_KEYS = ("train/frames", "train/updates", "train/discriminator_accuracy", "eval/final_state_accuracy",
+                "eval/random_final_state_accuracy")
+"""What the command line prints when a run ends (every metric is in the logs)."""
 
 
 @hydra.main(version_base="1.3", config_path="pkg://umrl.configs", config_name="diayn")
 def main(cfg: DictConfig) -> None:
     tune_process(num_threads=cfg.num_threads)  # this process is the run's: umrl's process-wide settings
     result = train(cfg)
-    print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in result.items()})
+    logging.getLogger(__name__).info(run_summary(f"diayn {cfg.env.name} finished", result, SUMMARY_KEYS,
+                                                 log_location(cfg.logger, cfg.output_dir)))
 
 
 if __name__ == "__main__":
+    register_help_text()
     main()

@@ -1,8 +1,8 @@
 """umrl.checkpoints: one format/version check for every loader and resume; saves carry the meta their loaders read."""
 import pytest
-import torch
 
 from umrl import checkpoints
+from umrl.checkpoint_file import write_state
 from umrl.checkpoints import DIAYN_FORMAT, MAML_FORMAT, VIME_FORMAT, CheckpointFormat
 from umrl.configs import check_resume
 from umrl.runtime import Checkpointer
@@ -21,7 +21,7 @@ def test_every_loader_rejects_another_format(tmp_path, fmt):
     for name in LOADERS[fmt]:
         with pytest.raises(ValueError, match=f"not a {fmt.what} checkpoint.*{other.name}"):
             getattr(checkpoints, name)(tmp_path)
-    torch.save([1, 2], tmp_path / "step_9.pt")
+    write_state([1, 2], tmp_path / "step_9.pt")
     with pytest.raises(ValueError, match="format 'list'"):
         fmt.load(tmp_path / "step_9.pt")
 

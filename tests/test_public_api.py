@@ -75,3 +75,11 @@ def test_every_module_imports_first_in_a_fresh_process():
     )
     result = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
+
+
+def test_version_comes_from_the_installed_metadata():
+    import importlib.metadata
+
+    import umrl
+
+    assert umrl.__version__ == importlib.metadata.version("umrl")

@@ -9,3 +9,9 @@ their registry, task families), :mod:`umrl.transforms`, :mod:`umrl.modules`, :mo
 Importing umrl changes nothing process-wide; the process tuning umrl's command lines apply is opt-in
 (:mod:`umrl.process`).
 """
+from importlib.metadata import PackageNotFoundError, version
+
+try:
+    __version__ = version("umrl")
+except PackageNotFoundError:  # a source tree used without being installed
+    __version__ = "0+unknown"

@@ -1,6 +1,6 @@
 """The one format/version check every checkpoint loader and every ``resume=true`` goes through.
 
-A umrl checkpoint is a ``torch.save``'d dict with ``"format"`` (a versioned name such as ``"umrl.maml.v1"``),
+A umrl checkpoint is a dict (stored by :mod:`umrl.checkpoint_file`: data only, hash-checked) with ``"format"`` (a versioned name such as ``"umrl.maml.v1"``),
 ``"meta"`` (what a loader needs to rebuild the networks) and format-specific entries. :class:`CheckpointFormat` names
 one format, the ``meta`` keys its loaders read, and does the saving (stamping ``"format"``) and the checked loading.
 """
@@ -59,7 +59,7 @@ class CheckpointFormat:
         (the latest ``step_*.pt``); ``FileNotFoundError`` says what was looked for, ``CheckpointError`` names an
         unreadable file."""
         file = resolve_checkpoint(path)
-        return self.check(read_checkpoint(file, mmap=True), file)
+        return self.check(read_checkpoint(file), file)
 
     def load_for_resume(self, checkpointer: Checkpointer, meta: Mapping[str, Any],
                         check_config: Callable[[Any], None] | None = None) -> dict:

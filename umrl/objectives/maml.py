@@ -10,11 +10,21 @@ Batches are ``[T, N, H]`` TensorDicts from :func:`umrl.rollout.collect`; the los
 (:meth:`MAMLLoss.make_value_estimator`, a :class:`~umrl.objectives.advantage.LinearBaselineGAE`) writes their
 ``"advantage"``. :meth:`MAMLLoss.forward` reads one TensorDict of batch ``[T]`` holding both (:meth:`MAMLLoss.pack`).
 
-Example:
+Example (point_nav's oracle goals as tasks):
+    >>> import torch
+    >>> from umrl.modules.policy import make_gaussian_policy
+    >>> from umrl.proposals import make_proposal
+    >>> from umrl.rollout import collect
+    >>> T, N, H = 2, 3, 5                                             # tasks, trajectories per task, horizon
+    >>> proposal = make_proposal("oracle", "point_nav", num_tasks=T, trajectories_per_task=N, horizon=H)
+    >>> goals = proposal.resample(torch.Generator().manual_seed(0))   # [T, 2]
+    >>> policy = make_gaussian_policy(2, 2, hidden=[16])
     >>> loss = MAMLLoss(policy, inner_lr=0.1)
-    >>> support = loss.value_estimator(collect(env, policy, num_tasks=T, horizon=H))
+    >>> support = loss.value_estimator(collect(proposal.env, policy, num_tasks=T, horizon=H))
     >>> adapted = loss.adapt(support)                                  # batch [T]
-    >>> query = loss.value_estimator(collect(env, policy, num_tasks=T, horizon=H, params=adapted))
+    >>> adapted.batch_size
+    torch.Size([2])
+    >>> query = loss.value_estimator(collect(proposal.env, policy, num_tasks=T, horizon=H, params=adapted.detach()))
     >>> out = loss(loss.pack(support, query, adapted))                 # reuses adapted's graph
     >>> out["loss_objective"].backward()                               # meta-gradient, through the inner step
 """

@@ -11,6 +11,7 @@ import os
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
@@ -21,7 +22,7 @@ from umrl.configs.maml import hvp_errors
 from umrl.configs.suite import RECIPE_SCHEMAS, needed_pretraining, pretrain_seeds, reuse_dir
 from umrl.configs.validate import check_partial, fill_env_defaults
 from umrl.launch import Job
-from umrl.metatest import CellSpec, Pretraining, default_lr_schedule, get_method, run_cell
+from umrl.metatest import CellSpec, Pretraining, cell_finished, default_lr_schedule, get_method, run_cell
 from umrl.metatest.cache import config_key, keyed_config, mark_done, run_finished
 from umrl.runtime import Checkpointer, to_container
 
@@ -232,7 +233,7 @@ def plan(cfg: DictConfig, group: str, code: str = "", runs: Mapping | None = Non
                     settings = cell_spec(cfg, method.name, env, seed, checkpoint, lr_schedule=schedule)
                     spec = keyed_cell(settings, checkpoint_id, code, out / "cells" / env / method.name / f"seed{seed}{suffix}")
                     key = f"cell/{env}/{method.name}/seed{seed}{suffix.replace('.', '/')}"
-                    jobs[key] = Job(key=key, fn=run_cell, args=(spec,), deps=deps, done=Path(spec.output).exists,
+                    jobs[key] = Job(key=key, fn=run_cell, args=(spec,), deps=deps, done=partial(cell_finished, spec.output),
                                     what=f"meta-test of {method.name} on {env}, seed {seed} -> {spec.output}",
                                     log=out / "logs" / f"cell_{env}_{method.name}_seed{seed}{suffix}.log")
     # Pre-training first, runs others depend on before them (DIAYN before MAML(diayn)), so the critical path starts at once.
@@ -267,7 +268,7 @@ def plan_ablation(cfg: DictConfig, runs: Mapping, code: str = "") -> list[Job]:
                     spec = keyed_cell(settings, checkpoint_identity(run, file), code,
                                       out / "ablation" / env / name / f"seed{seed}" / f"iter{iteration}")
                     key = f"ablation/{env}/{name}/seed{seed}/iter{iteration}"
-                    jobs.append(Job(key=key, fn=run_cell, args=(spec,), done=Path(spec.output).exists,
+                    jobs.append(Job(key=key, fn=run_cell, args=(spec,), done=partial(cell_finished, spec.output),
                                     what=f"ablation meta-test of {name} on {env}, seed {seed}, {file.name}",
                                     log=out / "logs" / f"ablation_{env}_{name}_seed{seed}_iter{iteration}.log"))
     return jobs

@@ -28,7 +28,7 @@ from umrl.metatest import (
     summary_table,
     write_rows,
 )
-from umrl.runtime import log_image, log_metrics, make_logger, to_container, write_text_atomic
+from umrl.runtime import close_logger, log_image, log_metrics, make_logger, to_container, write_text_atomic
 
 __all__ = ["report", "summarize_timings"]
 
@@ -90,18 +90,12 @@ def _log_to_wandb(cfg: DictConfig, group: str, curves, records, out: Path) -> No
             summary = {f"summary/{r['metric']}_iqm": r["iqm"] for r in records
                        if r["env"] == env and r["method"] == method}
             log_metrics(logger, summary, step=len(curve.mean) - 1)
-            _finish(logger)
+            close_logger(logger)
     logger = make_logger(logger_cfg, exp_name="report", config=to_container(cfg), log_dir=out)
     for name in ("curves", "ablation"):
         if (out / f"{name}.png").exists():
             log_image(logger, f"report/{name}", out / f"{name}.png", step=0)
-    _finish(logger)
-
-
-def _finish(logger) -> None:
-    experiment = getattr(logger, "experiment", None)
-    if experiment is not None and hasattr(experiment, "finish"):
-        experiment.finish()
+    close_logger(logger)
 
 
 def summarize_timings(history: Sequence[Mapping]) -> dict[str, float]:

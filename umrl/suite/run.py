@@ -14,7 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from umrl.configs import validate
 from umrl.configs.suite import SuiteConfig
-from umrl.launch import Job, make_launcher, run_jobs
+from umrl.launch import Job, directory_lock, make_launcher, run_jobs
 from umrl.metatest.cache import remove_stale_tmp, source_version, write_json_atomic
 from umrl.runtime import write_text_atomic
 from umrl.suite.plan import plan, plan_ablation, plan_pretraining
@@ -54,6 +54,11 @@ def run_suite(cfg: DictConfig, *, log: Callable[[str], None] = print) -> str:
     :class:`~umrl.configs.ConfigError` before any job starts.
     """
     cfg = validate(cfg, SuiteConfig)
+    with directory_lock(cfg.output_dir):  # a second suite in the same output_dir refuses, naming this one's pid
+        return _run_suite(cfg, log)
+
+
+def _run_suite(cfg: DictConfig, log: Callable[[str], None]) -> str:
     out = Path(cfg.output_dir).absolute()
     code = code_version()
     group = suite_group(cfg)

@@ -18,7 +18,7 @@ from pathlib import Path
 from hydra import compose as hydra_compose
 from hydra import initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 import umrl.configs
 
@@ -27,7 +27,7 @@ CONFIG_DIR = Path(umrl.configs.__file__).resolve().parent
 
 TRAINERS = ("diayn", "maml", "vime")
 
-__all__ = ["CONFIG_DIR", "TRAINERS", "check_name", "compose", "config_dir"]
+__all__ = ["CONFIG_DIR", "TRAINERS", "check_name", "compose", "config_dir", "register_help_text"]
 
 
 @contextmanager
@@ -57,3 +57,14 @@ def compose(name: str, overrides: Sequence[str] = ()) -> DictConfig:
     check_name(name)
     with config_dir():
         return hydra_compose(name, overrides=list(overrides))
+
+
+def register_help_text(directory: str | Path = CONFIG_DIR) -> None:
+    """Make ``${umrl_config_text:<name>}`` the text of ``<directory>/<name>.yaml`` as written, comments included: the
+    command lines' ``--help`` (their ``hydra.help.template``) shows every key with its comment. The scripts call it
+    under ``if __name__ == "__main__"``, before Hydra reads ``--help``."""
+    def text(name: str) -> str:
+        return (Path(directory) / f"{name}.yaml").read_text().replace("$", "$$")  # Hydra fills the template with
+        # string.Template, where "$$" is a literal "$"
+
+    OmegaConf.register_new_resolver("umrl_config_text", text, replace=True)

@@ -45,6 +45,7 @@ from umrl.objectives.diayn import DIAYNLoss, DIAYNUpdate, make_diayn_optimizers
 from umrl.runtime import (
     Checkpointer,
     check_finite,
+    close_logger,
     env_state,
     isolated_rng,
     load_env_state,
@@ -296,6 +297,7 @@ class DIAYNTrainer:
         self.collector.shutdown()
         self.env.close()
         self.eval_env.close()
+        close_logger(self.logger)
 
 
 def train(cfg: DictConfig) -> dict:

@@ -12,7 +12,8 @@ surrogate through the inner step), with the KL Hessian-vector product strategy `
 
 Metrics of :meth:`MAMLTrainer.step`: ``train/`` return_pre, return_post (mean undiscounted return of the pre/post-update
 trajectories), reward_mean/std/min/max (task rewards of the pre-update batch), kl, surrogate_before,
-improvement, backtracks (line-search trials; of them rejected_surrogate and rejected_kl), accepted, grad_norm,
+improvement, backtracks (line-search trials; of them rejected_surrogate and rejected_kl, of those nonfinite_kl),
+accepted, grad_norm,
 step_norm, log_std (θ's action log-std after the meta-step, mean over action dimensions); ``time/`` collect_s
 (rollouts + advantages), learn_s (inner adaptation for the post-update policy + TRPO meta-step), inner_s (that
 adaptation alone, built with the graph the meta-step differentiates through), the meta-step's parts objective_s
@@ -51,6 +52,7 @@ from umrl.rollout import check_cudagraphs, collect
 from umrl.runtime import (
     Checkpointer,
     check_finite,
+    close_logger,
     env_state,
     load_env_state,
     log_metrics,
@@ -214,6 +216,9 @@ class MAMLTrainer:
                  if cfg.resume else None)
         if state is not None:
             self.load_state_dict(state)
+            if self.done:  # as DIAYN and VIME: a resume with nothing to do is a mistake
+                raise ValueError(f"nothing to do: the checkpoint is at iteration {self.iteration} >= "
+                                 f"iterations={cfg.iterations}; raise iterations.")
         else:
             self.save()
         self.logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, config=cfg, log_dir=self.output_dir)
@@ -255,7 +260,7 @@ class MAMLTrainer:
     def train(self) -> dict:
         """Step to ``cfg.iterations``, logging every iteration and checkpointing every ``cfg.checkpoint.every`` and
         at the last; returns the last iteration's metrics, ``iteration`` and the last ``checkpoint`` path (a run
-        resumed at its budget returns its last checkpoint)."""
+        resumed at its budget is refused at construction)."""
         cfg, metrics = self.cfg, {}
         path = self.checkpointer.latest()
         progress = tqdm.tqdm(total=cfg.iterations, initial=self.iteration, disable=not cfg.progress,
@@ -272,8 +277,9 @@ class MAMLTrainer:
         return {**metrics, "iteration": self.iteration, "checkpoint": str(path)}
 
     def close(self) -> None:
-        """Close the env (and its worker threads)."""
+        """Close the env (and its worker threads) and finish the logger's run."""
         self.proposal.env.close()
+        close_logger(self.logger)
 
 
 def train(cfg: DictConfig) -> dict:

@@ -14,11 +14,11 @@ one TRPO step (:class:`umrl.optim.trpo.TRPOStep`) on the importance-ratio surrog
 (:func:`umrl.objectives.policy_gradient.compute_advantages`).
 
 Logged (namespaced): ``bonus/`` info gain and bonus statistics; ``dynamics/`` training loss, log-likelihood, KL to
-the prior, held-out log-likelihood and ELBO per transition; ``trpo/`` improvement, KL, acceptance, backtracks;
-``coverage/`` of the batch's visited states (x-y cells and their area for point_nav and ant, velocity ranges for
+the prior, held-out log-likelihood and ELBO per transition; ``train/`` the TRPO step's improvement, KL, acceptance,
+backtracks (the names MAML's meta-step logs), action_std and frames; ``coverage/`` of the batch's visited states (x-y cells and their area for point_nav and ant, velocity ranges for
 half_cheetah), the untrained policy's under ``coverage/initial_*`` and everything visited so far under
-``coverage/cumulative_*`` (all from :mod:`umrl.skill_coverage`); ``time/`` env steps/s and seconds per phase. The
-figure ``<output_dir>/figures/coverage.png`` shows the last batch's visited states against the untrained policy's.
+``coverage/cumulative_*`` (all from :mod:`umrl.skill_coverage`); ``time/`` env steps/s and seconds per phase (the
+TRPO step's direction_s, cg_s and line_search_s too, as in MAML's). The figure ``<output_dir>/figures/coverage.png`` shows the last batch's visited states against the untrained policy's.
 
 Checkpoints: ``<output_dir>/checkpoints/step_<iteration>.pt``, format ``umrl.vime.v1`` (documented in
 :mod:`umrl.checkpoints.vime`); ``umrl.checkpoints.load_vime_policy(path)`` returns the policy to fine-tune.
@@ -50,6 +50,7 @@ from umrl.rollout import collect
 from umrl.runtime import (
     Checkpointer,
     check_finite,
+    close_logger,
     env_state,
     load_env_state,
     load_replay_buffer_state,
@@ -256,8 +257,8 @@ class VIMETrainer:
             "bonus/intrinsic_max": float(intrinsic.max()),
             "bonus/intrinsic_return": float((batch["next", "reward"].squeeze(-1) * mask).sum(-1).mean()),
             **{f"dynamics/{k}": v for k, v in dyn_metrics.items()},
-            **{f"trpo/{k}": v for k, v in trpo_info.items()},
-            "policy/action_std": float(batch["scale"].mean()),
+            **{f"{'time' if k.endswith('_s') else 'train'}/{k}": v for k, v in trpo_info.items()},
+            "train/action_std": float(batch["scale"].mean()),
             **{f"coverage/{k}": v for k, v in {**coverage, **cumulative}.items()},
             **{f"coverage/initial_{k}": v for k, v in self.initial_coverage.items()},
             "time/env_steps_per_s": batch.numel() / max(collect_s, 1e-9), "time/collect_s": collect_s,
@@ -303,8 +304,9 @@ class VIMETrainer:
         return {**metrics, "checkpoint": str(path)}
 
     def close(self) -> None:
-        """Close the env."""
+        """Close the env and finish the logger's run."""
         self.env.close()
+        close_logger(self.logger)
 
 
 def train(cfg: DictConfig) -> dict:
