@@ -7,6 +7,7 @@ import umrl.trainers
 from umrl.configs import ConfigError, validate
 from umrl.configs.diayn import DIAYNConfig
 from umrl.metatest import cell_finished, read_rows, run_matrix, summary_table
+from umrl.optim.hvp import KLHessian
 from umrl.optim.trpo import TRPOStep
 from umrl.proposals import make_proposal
 
@@ -43,7 +44,7 @@ def test_trpo_warns_when_a_nan_kl_rejects_the_step():
         return (shift * -target).sum(), model_kl() + torch.where(shift.abs().sum() > 0, torch.nan, 0.0)
 
     with pytest.warns(RuntimeWarning, match="TRPO step rejected: the KL was not finite at 5 of 5 line-search trials"):
-        info = TRPOStep(params, max_kl=0.01, max_backtracks=5)(closure, hvp_closure=model_kl)
+        info = TRPOStep(params, max_kl=0.01, max_backtracks=5, hvp=KLHessian(lambda batch: model_kl()))(closure)
     assert info["accepted"] == 0.0 and info["nonfinite_kl"] == 5
     assert torch.equal(params["w"], torch.ones(3))
 
