@@ -90,7 +90,7 @@ def process_samples(paths, baseline, center_adv=True):
     if center_adv:  # rllab/algos/util.py: center_advantages
         advantages = (advantages - np.mean(advantages)) / (advantages.std() + 1e-8)
     average_return = np.mean([sum(path["rewards"]) for path in paths])  # logged as AverageReturn
-    return dict(observations=observations, actions=actions, advantages=advantages), average_return
+    return {"observations": observations, "actions": actions, "advantages": advantages}, average_return
 
 
 # --- sandbox/rocky/tf/policies/maml_minimal_gauss_mlp_policy.py + distributions/diagonal_gaussian.py ------------------
@@ -146,9 +146,9 @@ def reference_paths(batch, task):
     paths = []
     for n in range(batch.shape[1]):
         length = int(batch["mask"][task, n].sum())
-        paths.append(dict(observations=batch["observation"][task, n, :length].double().numpy(),
-                          actions=batch["action"][task, n, :length].double().numpy(),
-                          rewards=batch["next", "reward"][task, n, :length, 0].double().numpy()))
+        paths.append({"observations": batch["observation"][task, n, :length].double().numpy(),
+                          "actions": batch["action"][task, n, :length].double().numpy(),
+                          "rewards": batch["next", "reward"][task, n, :length, 0].double().numpy()})
     return paths
 
 
