@@ -3,7 +3,7 @@
 Runs UML-DIAYN, UML-random, oracle, VIME-init, DIAYN-init and scratch on the chosen envs and seeds::
 
     python benchmarks/suite.py profile=quick                     # point_nav, reduced budgets, minutes on 2 cores
-    python benchmarks/suite.py profile=paper envs=[point_nav]    # PROTOCOL.md settings
+    python benchmarks/suite.py profile=reference envs=[point_nav]  # the reference code's settings
     python benchmarks/suite.py profile=quick launcher.ray_address=auto   # jobs as Ray tasks on a cluster
     python benchmarks/suite.py profile=quick device=auto         # pre-training and meta-test on a GPU if there is one
 
@@ -59,7 +59,7 @@ import recipes
 from umrl.configs import ConfigError, validate
 from umrl.configs.maml import hvp_errors
 from umrl.configs.suite import RECIPE_SCHEMAS, SuiteConfig, needed_pretraining, pretrain_seeds, reuse_dir
-from umrl.configs.validate import check_partial
+from umrl.configs.validate import check_partial, fill_env_defaults
 from umrl.launch import Job, make_launcher, run_jobs
 from umrl.metatest import (
     CellSpec,
@@ -69,6 +69,7 @@ from umrl.metatest import (
     arm_label,
     arm_styles,
     curves_from_rows,
+    default_lr_schedule,
     get_method,
     plot_ablation,
     plot_adaptation_curves,
@@ -210,7 +211,9 @@ def plan_pretraining(cfg: DictConfig, group: str, code: str) -> dict[tuple[str, 
                 problems = check_partial(values, RECIPE_SCHEMAS[run.recipe], prefix=f"{name}: ")
                 if run.recipe == "maml" and not problems:
                     problems = [f"{name}: {error}" for error in hvp_errors(values)]
-                budget = OmegaConf.select(composed, BUDGET_KEYS[run.recipe])
+                if not problems:  # env-dependent defaults (budgets, DIAYN's episode length) enter the run's key
+                    fill_env_defaults(values, RECIPE_SCHEMAS[run.recipe])
+                budget = OmegaConf.select(OmegaConf.create(values), BUDGET_KEYS[run.recipe])
                 if budget is None:
                     problems.append(f"{name}: the recipe config has no {BUDGET_KEYS[run.recipe]!r} (its budget); "
                                     "update BUDGET_KEYS in benchmarks/suite.py")
@@ -289,7 +292,7 @@ def plan(cfg: DictConfig, group: str, code: str = "", runs: Mapping | None = Non
                     deps, checkpoint = (pretrain_key(pretraining, env, pseed),), str(run.run_dir)
                     checkpoint_id = checkpoint_identity(run, checkpoint)
                 for schedule in _cell_schedules(cfg, method.name):
-                    suffix = "" if schedule == "constant" else f".{schedule}"
+                    suffix = "" if schedule == default_lr_schedule(method.name) else f".{schedule}"
                     settings = cell_spec(cfg, method.name, env, seed, checkpoint, lr_schedule=schedule)
                     spec = keyed_cell(settings, checkpoint_id, code, out / "cells" / env / method.name / f"seed{seed}{suffix}")
                     key = f"cell/{env}/{method.name}/seed{seed}{suffix.replace('.', '/')}"

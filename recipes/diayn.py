@@ -122,7 +122,7 @@ def train(cfg: DictConfig) -> dict:
     disc_dims = None if cfg.network.discriminator_input_dims is None else list(cfg.network.discriminator_input_dims)
     meta = {"env": cfg.env.name, "obs_dim": obs_dim, "act_dim": act_dim, "num_skills": num_skills,
             "hidden": hidden, "discriminator_hidden": disc_hidden,
-            "discriminator_observation_key": ["next", "observation"],
+            "discriminator_observation_key": ["observation"],
             "discriminator_input_dims": disc_dims}
     # FileNotFoundError says what is missing; ConfigError lists changed keys; ValueError if format or meta differ
     # the collector restarts its episodes at every checkpoint: a changed checkpoint.every would continue another run

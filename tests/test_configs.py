@@ -113,7 +113,7 @@ NO_GPU = pytest.mark.skipif(torch.cuda.is_available(), reason="device=cuda is va
      "network.discriminator_input_dims: got [0, 2]; expected null or distinct integers < 2 (point_nav's obs_dim)"),
     pytest.param("maml", ["device=cuda"], "device: got 'cuda' (no CUDA device is available on this machine); "
                  "expected one of 'cpu', 'auto'", marks=NO_GPU),
-    ("maml", ["iterations=-5"], "iterations: got -5; expected an integer >= 1"),
+    ("maml", ["iterations=-5"], "iterations: got -5; expected null or an integer >= 1"),
     ("maml", ["compile=true"], "compile: got True (torch.compile cannot differentiate a compiled graph twice"),
     ("diayn", ["optim.cudagraphs=true"], "optim.cudagraphs: got True; expected false with device=cpu"),
     ("maml", ["cudagraphs=true"], "cudagraphs: got True; expected false with device=cpu"),
@@ -131,7 +131,7 @@ NO_GPU = pytest.mark.skipif(torch.cuda.is_available(), reason="device=cuda is va
     # obscure before: a crash far from the cause
     ("diayn", ["checkpoint.every=0"], "checkpoint.every: got 0; expected an integer >= 1"),
     ("maml", ["checkpoint.every=0"], "checkpoint.every: got 0; expected an integer >= 1"),
-    ("maml", ["iterations=abc"], "iterations: got 'abc'; expected an integer >= 1"),
+    ("maml", ["iterations=abc"], "iterations: got 'abc'; expected null or an integer >= 1"),
     ("vime", ["iterations=2.5"], "iterations: got 2.5; expected an integer >= 1"),
     ("diayn", ["optim.lr=fast"], "optim.lr: got 'fast'; expected a finite number > 0"),
     ("diayn", ["resume=maybe"], "resume: got 'maybe'; expected true or false"),
@@ -155,7 +155,7 @@ NO_GPU = pytest.mark.skipif(torch.cuda.is_available(), reason="device=cuda is va
      "'oracle', 'vime_init', 'diayn_init', 'scratch'")),
     ("suite", ["protocol.num_steps=3"], "report.steps[2]: got 5; expected an integer <= protocol.num_steps (3)"),
     ("suite", ["++pretrain.maml.overrides.iterations=-5"],
-     "pretrain.maml.overrides.iterations: got -5; expected an integer >= 1"),
+     "pretrain.maml.overrides.iterations: got -5; expected null or an integer >= 1"),
     ("suite", ["+pretrain.vime.overrides.itrations=5"],
      "pretrain.vime.overrides.itrations: unexpected key; expected one of the keys of VIMEConfig"),
 ])

@@ -75,7 +75,7 @@ def test_outputs_and_fresh_pseudo_reward():
     out = loss(data)
     for key in ("alpha", "entropy", "discriminator_accuracy", "pseudo_reward"):
         assert not out[key].requires_grad
-    logits = loss.discriminator.module(data["next", "observation"])
+    logits = loss.discriminator.module(data["observation"])
     label = data["skill"].argmax(-1)
     expected_reward = torch.log_softmax(logits, -1).gather(-1, label[:, None]) + math.log(K)
     torch.testing.assert_close(out["pseudo_reward"], expected_reward.mean().detach())
@@ -102,7 +102,7 @@ def test_one_discriminator_forward_serves_reward_and_loss():
     got = [p.grad.clone() for p in loss.discriminator.parameters()]
     loss.zero_grad()
     data = make_data()
-    logits = loss.discriminator.module(data["next", "observation"])
+    logits = loss.discriminator.module(data["observation"])
     torch.nn.functional.cross_entropy(logits, data["skill"].argmax(-1)).backward()
     for g, p in zip(got, loss.discriminator.parameters()):
         torch.testing.assert_close(g, p.grad)
@@ -122,7 +122,7 @@ def test_set_keys_renames():
     torch.manual_seed(4)
     reference = loss(make_data())
     renamed = make_loss(skill_key="z")
-    renamed.set_keys(skill="z", reward="r_diayn", discriminator_observation=("next", "observation"))
+    renamed.set_keys(skill="z", reward="r_diayn", discriminator_observation="observation")
     data = make_data(skill="z", reward="r_diayn")
     torch.manual_seed(4)
     out = renamed(data)
@@ -130,7 +130,7 @@ def test_set_keys_renames():
         torch.testing.assert_close(out[key], reference[key])
     assert (data["next", "r_diayn"] == 1000).all()
     # the discriminator now scores another state
-    renamed.set_keys(discriminator_observation="observation")
+    renamed.set_keys(discriminator_observation=("next", "observation"))
     torch.manual_seed(4)
     assert renamed(data)["loss_discriminator"] != reference["loss_discriminator"]
     with pytest.raises(ValueError, match="not an accepted"):

@@ -29,22 +29,22 @@ def test_check_env_specs_single_and_batched():
     check_env_specs(reward_env(disc, num_envs=5))
 
 
-def test_reward_matches_hand_computation_on_next_observation():
+def test_reward_matches_hand_computation_on_s_t():
     torch.manual_seed(0)
     disc = make_discriminator(2, K, hidden=(16, 16))
     td = reward_env(disc).rollout(5)
-    expected = by_hand(disc, td["next", "observation"], td["skill"])
+    expected = by_hand(disc, td["observation"], td["skill"])
     torch.testing.assert_close(td["next", "reward"], expected)
     assert not td["next", "reward"].requires_grad
-    # s_t would give a different reward: the first observation is the origin for every copy
-    assert not torch.allclose(expected, by_hand(disc, td["observation"], td["skill"]))
+    # s_{t+1} would give a different reward: the first observation is the origin for every copy
+    assert not torch.allclose(expected, by_hand(disc, td["next", "observation"], td["skill"]))
 
 
-def test_observation_key_s_t():
+def test_observation_key_next_state():
     torch.manual_seed(0)
     disc = make_discriminator(2, K, hidden=(16,))
-    td = reward_env(disc, observation_key="observation").rollout(4)
-    torch.testing.assert_close(td["next", "reward"], by_hand(disc, td["observation"], td["skill"]))
+    td = reward_env(disc, observation_key=("next", "observation")).rollout(4)
+    torch.testing.assert_close(td["next", "reward"], by_hand(disc, td["next", "observation"], td["skill"]))
 
 
 def test_forward_relabels_with_current_discriminator():
@@ -60,7 +60,7 @@ def test_forward_relabels_with_current_discriminator():
             p.add_(torch.randn_like(p))
     out = transform(td)
     assert out is td
-    fresh = by_hand(disc, td["next", "observation"], td["skill"])
+    fresh = by_hand(disc, td["observation"], td["skill"])
     torch.testing.assert_close(td["next", "reward"], fresh)
     assert not torch.allclose(fresh, stale)
     torch.testing.assert_close(td["next", "env_reward"], env_reward)
@@ -79,7 +79,7 @@ def test_seeded_random_discriminator_is_reproducible_and_keeps_global_rng():
     # unseeded calls draw different weights
     assert not torch.allclose(make_discriminator(2, K).module(obs), make_discriminator(2, K).module(obs))
     td = reward_env(a).rollout(3)  # a frozen discriminator works the same way
-    torch.testing.assert_close(td["next", "reward"], by_hand(a, td["next", "observation"], td["skill"]))
+    torch.testing.assert_close(td["next", "reward"], by_hand(a, td["observation"], td["skill"]))
 
 
 @pytest.mark.parametrize(

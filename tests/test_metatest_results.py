@@ -76,25 +76,27 @@ def test_both_sgd_schedules_are_separate_arms():
     rows = []
     for seed in range(2):
         rows += to_rows(np.full((3, 2), -10.0), FULL_3x2,
-                        method="uml_diayn", env="point_nav", seed=seed)
+                        method="uml_diayn", env="point_nav", seed=seed, lr_schedule="constant")
         rows += to_rows(np.full((3, 2), -4.0), FULL_3x2,
-                        method="uml_diayn", env="point_nav", seed=seed, lr_schedule="reference")
+                        method="uml_diayn", env="point_nav", seed=seed)
         rows += to_rows(np.full((3, 2), -7.0), FULL_3x2,
                         method="scratch", env="point_nav", seed=seed)
     markdown, records = summary_table(rows, steps=(0,), methods=["scratch", "uml_diayn"])
     auc_mean = {r["method"]: r["mean"] for r in records if r["metric"] == "auc"}
     # trapezoid over k = 0..2 of a constant r is 2 r, per arm
-    assert auc_mean == {"scratch": pytest.approx(-14.0), "uml_diayn": pytest.approx(-20.0),
-                        "uml_diayn (reference)": pytest.approx(-8.0)}
+    # the reference schedule is the SGD methods' default: their arm is named after the method alone
+    assert auc_mean == {"scratch": pytest.approx(-14.0), "uml_diayn": pytest.approx(-8.0),
+                        "uml_diayn (constant)": pytest.approx(-20.0)}
     lines = [line for line in markdown.splitlines() if line.startswith("| ") and "method" not in line]
-    assert [line.split(" | ")[0] for line in lines] == ["| scratch", "| uml_diayn", "| uml_diayn (reference)"]
+    assert [line.split(" | ")[0] for line in lines] == ["| scratch", "| uml_diayn", "| uml_diayn (constant)"]
     assert all(line.endswith("| 4 |") for line in lines)  # 2 seeds x 2 tasks per arm, never mixed
     curves = curves_from_rows(rows)
-    assert list(curves["point_nav"]) == ["scratch", "uml_diayn", "uml_diayn (reference)"]
+    assert list(curves["point_nav"]) == ["scratch", "uml_diayn", "uml_diayn (constant)"]
     styles = arm_styles(rows)
-    assert styles["uml_diayn"]["color"] == styles["uml_diayn (reference)"]["color"]
-    assert styles["uml_diayn (reference)"]["linestyle"] == "--" and styles["uml_diayn"]["linestyle"] == "-"
-    assert arm_label("oracle") == "oracle" and arm_label("oracle", "reference") == "oracle (reference)"
+    assert styles["uml_diayn"]["color"] == styles["uml_diayn (constant)"]["color"]
+    assert styles["uml_diayn (constant)"]["linestyle"] == "--" and styles["uml_diayn"]["linestyle"] == "-"
+    assert arm_label("oracle") == "oracle" and arm_label("oracle", "constant") == "oracle (constant)"
+    assert arm_label("oracle", "reference") == "oracle" and arm_label("scratch", "constant") == "scratch"
 
 
 def test_ablation_curves_and_table():

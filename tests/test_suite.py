@@ -52,7 +52,7 @@ def test_plan_dependencies_and_shared_pretraining(tmp_path):
 
 
 def test_a_maml_override_the_inner_step_cannot_take_fails_before_any_run(tmp_path):
-    cfg = _cfg(tmp_path, "seeds=[0]", "methods=[uml_random]", "+pretrain.maml.overrides.trpo.hvp=analytic",
+    cfg = _cfg(tmp_path, "seeds=[0]", "methods=[uml_random]", "++pretrain.maml.overrides.trpo.hvp=analytic",
                "+pretrain.maml.overrides.maml.task_loop=true")
     with pytest.raises(ConfigError, match=r"pretrain.maml \(maml_random, point_nav, seed 0\): maml.task_loop: got True; "
                                           "expected null with trpo.hvp=analytic"):
@@ -69,7 +69,7 @@ def test_every_pretraining_run_gets_the_launchers_thread_count(tmp_path):
 
 def test_independent_pretraining_per_seed_and_both_sgd_schedules(tmp_path):
     cfg = _cfg(tmp_path, "seeds=[0,1]", "pretrain_seeds=null", "methods=[uml_random,scratch]",
-               "protocol.sgd_schedule=[constant,reference]")
+               "protocol.sgd_schedule=[reference,constant]")
     jobs = {job.key: job for job in suite.plan(cfg, group="g")}
     # pretrain_seeds null: each meta-test seed has its own pre-training run
     assert sorted(k for k in jobs if k.startswith("pretrain")) == [
@@ -78,10 +78,12 @@ def test_independent_pretraining_per_seed_and_both_sgd_schedules(tmp_path):
     # the SGD method gets one cell per schedule, Adam's scratch one
     assert sorted(k for k in jobs if k.startswith("cell/")) == [
         "cell/point_nav/scratch/seed0", "cell/point_nav/scratch/seed1",
-        "cell/point_nav/uml_random/seed0", "cell/point_nav/uml_random/seed0/reference",
-        "cell/point_nav/uml_random/seed1", "cell/point_nav/uml_random/seed1/reference"]
-    ref = jobs["cell/point_nav/uml_random/seed1/reference"].args[0]
-    assert ref.protocol.sgd_schedule == "reference" and Path(ref.output).name.startswith("seed1.reference-")
+        "cell/point_nav/uml_random/seed0", "cell/point_nav/uml_random/seed0/constant",
+        "cell/point_nav/uml_random/seed1", "cell/point_nav/uml_random/seed1/constant"]
+    ref = jobs["cell/point_nav/uml_random/seed1"].args[0]
+    assert ref.protocol.sgd_schedule == "reference" and Path(ref.output).name.startswith("seed1-")
+    constant = jobs["cell/point_nav/uml_random/seed1/constant"].args[0]
+    assert constant.protocol.sgd_schedule == "constant" and Path(constant.output).name.startswith("seed1.constant-")
     assert "/maml_random/point_nav/seed1-" in ref.checkpoint
     explicit = _cfg(tmp_path, "seeds=[0,1]", "pretrain_seeds=[7,8]", "methods=[uml_random]")
     assert "pretrain/maml_random/point_nav/seed8" in {j.key for j in suite.plan(explicit, group="g")}
@@ -91,13 +93,18 @@ def test_independent_pretraining_per_seed_and_both_sgd_schedules(tmp_path):
         _cfg(tmp_path, "methods=[uml_random]", "protocol.sgd_schedule=halving")
 
 
-def test_paper_profile_runs_k100_both_schedules_independent_pretraining():
-    cfg = validate(compose_config("benchmarks/config", "suite", ["profile=paper"]), SuiteConfig)
-    assert cfg.protocol.num_steps == 100 and list(cfg.protocol.sgd_schedule) == ["constant", "reference"]
+def test_reference_profile_runs_k100_both_schedules_independent_pretraining():
+    cfg = validate(compose_config("benchmarks/config", "suite", ["profile=reference"]), SuiteConfig)
+    assert cfg.protocol.num_steps == 100 and list(cfg.protocol.sgd_schedule) == ["reference", "constant"]
     assert cfg.pretrain_seeds is None
     assert suite.pretrain_seeds(cfg) == list(cfg.seeds)
     quick = compose_config("benchmarks/config", "suite", ["profile=quick"])
-    assert suite.pretrain_seeds(quick) == [0, 0, 0] and quick.protocol.sgd_schedule == "constant"
+    assert suite.pretrain_seeds(quick) == [0, 0, 0] and quick.protocol.sgd_schedule == "reference"
+
+
+def test_removed_profile_name_lists_the_profiles():
+    with pytest.raises(Exception, match=r"(?s)profile/paper.*quick.*reference"):
+        compose_config("benchmarks/config", "suite", ["profile=paper"])
 
 
 def test_existing_cell_is_skipped(tmp_path):

@@ -90,7 +90,8 @@ def _skill_env(env_name: str, discriminator, num_skills: int, batch: int, seed: 
     env = make_env(env_name, batch, seed=seed, horizon=horizon, device=device, **options)
     skills = SkillTransform(num_skills)
     env.append_transform(skills)
-    env.append_transform(DiscriminatorReward(discriminator, num_skills))
+    # a proposed task rewards the state its action led to, as the hand-designed task rewards do
+    env.append_transform(DiscriminatorReward(discriminator, num_skills, observation_key=("next", "observation")))
     return env, skills
 
 

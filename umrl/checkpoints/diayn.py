@@ -4,7 +4,8 @@ A checkpoint is a ``torch.save``'d dict:
 
 - ``"format"``: ``"umrl.diayn.v1"``;
 - ``"meta"``: ``env`` (name), ``obs_dim``, ``act_dim``, ``num_skills``, ``hidden`` (actor/Q widths),
-  ``discriminator_hidden``, ``discriminator_observation_key`` (``["next", "observation"]``: D scores s_{t+1}),
+  ``discriminator_hidden``, ``discriminator_observation_key`` (``["observation"]``: D was trained on s_t; ``["next", "observation"]`` in
+  checkpoints written before DIAYN scored s_t),
   ``discriminator_input_dims`` (``None``: D reads the whole observation; a list: only those dims; absent in
   checkpoints written before the key, which read the whole observation);
 - ``"actor"``: state dict of :func:`umrl.modules.sac.make_skill_actor` ``(obs_dim, num_skills, act_dim,

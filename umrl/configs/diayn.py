@@ -18,9 +18,20 @@ class NetworkConfig:
 
 
 @dataclass
+class DIAYNEnvConfig(BatchedEnvConfig):
+    """:class:`BatchedEnvConfig` whose ``horizon`` may be null: the env's ``EnvSpec.diayn_horizon`` (DIAYN's
+    reference episode length, 1000 on MuJoCo)."""
+
+    horizon: int | None = integer(min=1)
+
+
+@dataclass
 class CollectorConfig:
-    total_frames: int = integer(min=1)
-    frames_per_batch: int = integer(min=1)
+    """``total_frames`` (null: the env's ``EnvSpec.diayn_frames``), ``frames_per_batch`` (null: one episode per env
+    copy, ``env.num_envs × env.horizon``) and ``init_random_frames``."""
+
+    total_frames: int | None = integer(min=1)
+    frames_per_batch: int | None = integer(min=1)
     init_random_frames: int = integer(min=0)
 
 
@@ -53,7 +64,7 @@ class EvalConfig:
 class DIAYNConfig(RunConfig):
     """Every key of ``recipes/config/diayn.yaml`` (:class:`RunConfig`'s and these); the yaml's comments say what each does."""
 
-    env: BatchedEnvConfig = group(BatchedEnvConfig)
+    env: DIAYNEnvConfig = group(DIAYNEnvConfig)
     num_skills: int | None = integer(min=2)
     network: NetworkConfig = group(NetworkConfig)
     collector: CollectorConfig = group(CollectorConfig)
@@ -61,6 +72,18 @@ class DIAYNConfig(RunConfig):
     optim: OptimConfig = group(OptimConfig)
     eval: EvalConfig = group(EvalConfig)
     checkpoint: CheckpointConfig = group(CheckpointConfig)
+
+    @staticmethod
+    def fill_env_defaults(cfg: dict) -> None:
+        """Null ``env.horizon``, ``collector.total_frames`` and ``collector.frames_per_batch`` take the env's
+        reference values (see :class:`DIAYNEnvConfig` and :class:`CollectorConfig`)."""
+        spec, env, collector = get_env_spec(cfg["env"]["name"]), cfg["env"], cfg["collector"]
+        if env["horizon"] is None:
+            env["horizon"] = spec.diayn_horizon
+        if collector["total_frames"] is None:
+            collector["total_frames"] = spec.diayn_frames
+        if collector["frames_per_batch"] is None:
+            collector["frames_per_batch"] = env["num_envs"] * env["horizon"]
 
     @staticmethod
     def cross_check(cfg: dict) -> list[str]:

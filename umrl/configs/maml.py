@@ -15,6 +15,7 @@ from umrl.configs.common import (
     cudagraphs_errors,
 )
 from umrl.configs.validate import boolean, checked, choice, group, integer, number, string
+from umrl.envs import get_env_spec
 from umrl.proposals import PROPOSALS
 from umrl.validation import InvalidValue, check_bool, check_path_exists
 
@@ -94,7 +95,7 @@ class MAMLConfig(RunConfig):
     num_skills: int | None = integer(min=2)
     meta_batch_size: int | None = integer(min=1)
     trajectories_per_task: int = integer(min=1)
-    iterations: int = integer(min=1)
+    iterations: int | None = integer(min=1)
     policy: PolicyConfig = group(PolicyConfig)
     maml: InnerConfig = group(InnerConfig)
     advantage: AdvantageConfig = group(AdvantageConfig)
@@ -102,6 +103,12 @@ class MAMLConfig(RunConfig):
     checkpoint: CheckpointConfig = group(CheckpointConfig)
     compile: bool = checked(_compile_off)
     cudagraphs: bool = boolean()
+
+    @staticmethod
+    def fill_env_defaults(cfg: dict) -> None:
+        """Null ``iterations``: the env's ``EnvSpec.maml_iterations`` (the MAML reference code's run length)."""
+        if cfg["iterations"] is None:
+            cfg["iterations"] = get_env_spec(cfg["env"]["name"]).maml_iterations
 
     @staticmethod
     def cross_check(cfg: dict) -> list[str]:

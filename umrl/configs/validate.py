@@ -4,7 +4,9 @@ A schema is a dataclass (usable as a Hydra/OmegaConf structured config) whose fi
 helpers below: each holds the check of :mod:`umrl.validation` that its value must pass, the annotation gives the
 type OmegaConf enforces later and ``Optional[...]`` lets the value be ``null``; nested dataclasses are config
 groups. A schema may define ``cross_check(cfg: dict) -> list[str]`` (error lines) for rules that relate several keys; it runs
-once every key passed its own check. Defaults live in the yaml files, not here (every field is ``MISSING``).
+once every key passed its own check. A schema may define ``fill_env_defaults(cfg: dict) -> None``, which replaces the
+``null`` keys whose default depends on the env (read from its :class:`~umrl.envs.EnvSpec`) in place; it runs before
+``cross_check`` (see :func:`fill_env_defaults`). Defaults live in the yaml files, not here (every field is ``MISSING``).
 """
 from __future__ import annotations
 
@@ -178,12 +180,24 @@ def validate(cfg: DictConfig | Mapping, schema: type) -> DictConfig:
     node = cfg if isinstance(cfg, DictConfig) else OmegaConf.create(dict(cfg))
     errors: list[str] = []
     values = _check_group(node, schema, "", errors)
+    if not errors:
+        fill_env_defaults(values, schema)
     cross_check = getattr(schema, "cross_check", None)
     if not errors and cross_check is not None:
         errors += cross_check(values)
     if errors:
         raise ConfigError(schema.__name__, errors)
     return OmegaConf.merge(OmegaConf.structured(schema), values)
+
+
+def fill_env_defaults(values: dict, schema: type) -> dict:
+    """``values`` (a checked config as a plain dict) with its env-dependent ``null`` keys filled in place by
+    ``schema.fill_env_defaults`` when the schema has one (e.g. DIAYN's episode length and budget, MAML's
+    iterations); returned for chaining."""
+    fill = getattr(schema, "fill_env_defaults", None)
+    if fill is not None:
+        fill(values)
+    return values
 
 
 def check_partial(values: Mapping, schema: type, prefix: str = "") -> list[str]:

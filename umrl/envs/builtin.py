@@ -62,12 +62,14 @@ HALF_CHEETAH = register_env(EnvSpec(
     name="half_cheetah", make=mujoco_maker("half_cheetah"), obs_dim=17, act_dim=6, num_skills=20,
     task_family=TaskFamily("half_cheetah", task_dim=1, low=0.0, high=2.0, reward_fn=target_velocity_reward),
     physics_keys={"x_position": 1, "x_velocity": 1}, coverage_key="x_velocity", coverage_reduction="mean",
+    diayn_horizon=1000, diayn_frames=10_000_000, maml_iterations=475,
 ))
 ANT = register_env(EnvSpec(
     name="ant", make=mujoco_maker("ant"), obs_dim=107, act_dim=8, num_skills=20,
     task_family=TaskFamily("ant", task_dim=2, low=-3.0, high=3.0, reward_fn=ant_goal_reward),
     physics_keys={"xy_position": 2, "x_velocity": 1, "reward_survive": 1, "reward_contact": 1},
     coverage_key="xy_position", coverage_cell=0.25,
+    diayn_horizon=1000, diayn_frames=10_000_000, maml_iterations=375,
 ))
 ANT_MAML_REWARD = register_env(replace(
     ANT, name="ant_maml_reward",

@@ -42,8 +42,14 @@ class EnvSpec:
             episode mean: velocities).
         coverage_cell: grid cell side for VIME's state-coverage counts of a 2-D :attr:`coverage_key`; ``None`` for
             1-D coverage (velocity ranges).
-        horizon: default episode length.
+        horizon: default episode length of meta-training and meta-test (the paper's path length, 100).
         num_eval_tasks: how many held-out evaluation tasks :meth:`eval_tasks` returns.
+        diayn_horizon: DIAYN's episode length, ``max_path_length`` of DIAYN's reference run for this kind of env
+            (ben-eysenbach/sac ``examples/mujoco_all_diayn.py``: 1000 on the MuJoCo envs, 100 for its point env).
+        diayn_frames: DIAYN's env-step budget in that reference run (``n_epochs × epoch_length``: 10,000 × 1000 =
+            10 M on HalfCheetah and Ant, 50 × 1000 = 50 k for its point env); the recipe's default.
+        maml_iterations: MAML meta-iterations of the reference run (cbfinn/maml_rl: ``maml_trpo_point.py`` runs 100;
+            ``test_maml_cheetah.py`` / ``test_maml_ant.py`` load iterations 475 / 375); the recipe's default.
     """
 
     name: str
@@ -58,10 +64,15 @@ class EnvSpec:
     coverage_cell: float | None = None
     horizon: int = 100
     num_eval_tasks: int = 20
+    diayn_horizon: int = 100
+    diayn_frames: int = 50_000
+    maml_iterations: int = 100
 
     def __post_init__(self) -> None:
         positive = {"obs_dim": self.obs_dim, "act_dim": self.act_dim, "num_skills": self.num_skills,
-                    "horizon": self.horizon, "num_eval_tasks": self.num_eval_tasks}
+                    "horizon": self.horizon, "num_eval_tasks": self.num_eval_tasks,
+                    "diayn_horizon": self.diayn_horizon, "diayn_frames": self.diayn_frames,
+                    "maml_iterations": self.maml_iterations}
         bad = {k: v for k, v in positive.items() if not (isinstance(v, int) and v > 0)}
         if bad:
             raise ValueError(f"EnvSpec {self.name!r}: these fields must be positive integers, got {bad}.")

@@ -22,6 +22,7 @@ from umrl.metatest.methods import (
     Method,
     Pretraining,
     SweepConfig,
+    default_lr_schedule,
     get_method,
     load_initialisation,
     meta_test,
@@ -29,6 +30,7 @@ from umrl.metatest.methods import (
 )
 from umrl.metatest.plots import METHOD_COLORS, Curve, plot_ablation, plot_adaptation_curves
 from umrl.metatest.protocol import (
+    DEFAULT_SGD_SCHEDULE,
     OPTIMIZERS,
     SGD_SCHEDULES,
     SWEEP_SEED_OFFSET,
@@ -61,6 +63,7 @@ from umrl.metatest.stats import auc, bootstrap_ci, iqm, summarize
 
 __all__ = [
     "COLUMNS",
+    "DEFAULT_SGD_SCHEDULE",
     "METHODS",
     "METHOD_COLORS",
     "OPTIMIZERS",
@@ -83,6 +86,7 @@ __all__ = [
     "auc",
     "bootstrap_ci",
     "curves_from_rows",
+    "default_lr_schedule",
     "get_method",
     "iqm",
     "load_initialisation",

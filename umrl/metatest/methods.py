@@ -23,6 +23,7 @@ from umrl.envs.tasks import get_task_family
 from umrl.heap import keep_freed_memory
 from umrl.metatest.cache import write_json_atomic
 from umrl.metatest.protocol import (
+    DEFAULT_SGD_SCHEDULE,
     AdaptationConfig,
     TaskAdapter,
     make_eval_env,
@@ -100,6 +101,14 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     # why UML-random fails on point_nav (meta-training positions clipped to [-1, 1]², meta-test env unbounded).
     Method("uml_random_arena", Pretraining("maml", "random_arena"), "sgd"),
 )}
+
+
+def default_lr_schedule(method: str) -> str:
+    """The step-size schedule a method's cells run without a ``protocol.sgd_schedule`` override:
+    :data:`~umrl.metatest.protocol.DEFAULT_SGD_SCHEDULE` for the SGD methods (MAML initialisations), ``"constant"``
+    for Adam's and for names that are not methods."""
+    method_record = METHODS.get(method)
+    return DEFAULT_SGD_SCHEDULE if method_record is not None and method_record.optimizer == "sgd" else "constant"
 
 
 def get_method(name: str) -> Method:

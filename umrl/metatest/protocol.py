@@ -47,6 +47,8 @@ from umrl.validation import check_choice, check_int, check_positive
 OPTIMIZERS = ("sgd", "adam")
 #: SGD step-size schedules at meta-test (see :func:`sgd_lr_factor`).
 SGD_SCHEDULES = ("constant", "reference", "swept")
+#: The SGD schedule of maml_rl's test scripts, umrl's default; tables name an SGD arm after its method alone under it.
+DEFAULT_SGD_SCHEDULE = "reference"
 #: Offset added to the cell seed to draw learning-rate sweep tasks (never the held-out evaluation tasks).
 SWEEP_SEED_OFFSET = 7919
 
@@ -74,8 +76,8 @@ class AdaptationConfig:
         horizon: ``H`` env steps per trajectory.
         gamma, lmbda: discount and GAE λ of the advantages.
         normalize_advantage: standardise each task's advantages (rllab's ``center_adv``, as MAML's inner step).
-        sgd_schedule: ``"constant"``, ``"reference"`` or ``"swept"`` (:func:`sgd_lr_factor`); applies to
-            ``optimizer="sgd"``.
+        sgd_schedule: ``"reference"`` (default: maml_rl's ``maml_examples/test_maml_*.py``), ``"constant"`` or
+            ``"swept"`` (:func:`sgd_lr_factor`); applies to ``optimizer="sgd"``.
         sgd_later_factor: ``"swept"``'s factor of ``α`` after the first update (> 0); a suite cell replaces it with
             the best of ``sweep.later_factors`` on the sweep tasks. Ignored by the other schedules.
         env_steps: ``None`` (PROTOCOL.md): every batch is ``num_trajectories`` trajectories per task. An integer
@@ -91,7 +93,7 @@ class AdaptationConfig:
     gamma: float = 0.99
     lmbda: float = 1.0
     normalize_advantage: bool = True
-    sgd_schedule: str = "constant"
+    sgd_schedule: str = DEFAULT_SGD_SCHEDULE
     sgd_later_factor: float = 0.5
     env_steps: int | None = None
 

@@ -1,9 +1,9 @@
 """Meta-test results: tidy rows and CSV files, curves, the summary and ablation tables, the suite's ``summary.md``.
 
 A row is one (method, env, seed, task, step) return and mean episode ``length`` (steps before the env ended the
-episode, or the horizon), plus ``lr_schedule`` (``constant`` | ``reference``: the step-size schedule the cell
-adapted with) and any constant ``extra`` columns (the ablation's ``iteration``). Tables
-and curves group rows by *arm*: the method, suffixed by its schedule when that is not ``constant``
+episode, or the horizon), plus ``lr_schedule`` (``reference`` | ``constant`` | ``swept``: the step-size schedule the cell
+adapted with; Adam's cells ``constant``) and any constant ``extra`` columns (the ablation's ``iteration``). Tables
+and curves group rows by *arm*: the method, suffixed by its schedule when that is not the method's default
 (:func:`arm_label`), so one table can hold both SGD schedules of a MAML initialisation.
 """
 from __future__ import annotations
@@ -25,25 +25,41 @@ from umrl.runtime import write_text_atomic
 COLUMNS = ("method", "env", "seed", "task", "step", "return", "length", "lr_schedule")
 
 
-def arm_label(method: str, lr_schedule: str = "constant") -> str:
-    """The name a (method, schedule) pair has in tables, curves and legends: ``uml_diayn``, ``uml_diayn (reference)``."""
-    return method if lr_schedule == "constant" else f"{method} ({lr_schedule})"
+def _default_schedule(method: str) -> str:
+    from umrl.metatest.methods import default_lr_schedule  # methods.py imports this module
+
+    return default_lr_schedule(method)
+
+
+def arm_label(method: str, lr_schedule: str | None = None) -> str:
+    """The name a (method, schedule) pair has in tables, curves and legends: the method alone under its default
+    schedule (:func:`~umrl.metatest.methods.default_lr_schedule`: ``uml_diayn`` is the reference schedule, ``scratch``
+    Adam's constant lr), else ``uml_diayn (constant)``."""
+    if lr_schedule is None or lr_schedule == _default_schedule(method):
+        return method
+    return f"{method} ({lr_schedule})"
+
+
+def _schedule(row: Mapping) -> str:
+    return row.get("lr_schedule", "constant")  # files written before the column ran the constant schedule
 
 
 def _label(row: Mapping) -> str:
-    return arm_label(row["method"], row.get("lr_schedule", "constant"))
+    return arm_label(row["method"], _schedule(row))
 
 
 def arm_styles(rows: Iterable[Mapping]) -> dict[str, dict]:
-    """Line style per arm label: the method's colour, dashed for a non-constant schedule."""
+    """Line style per arm label: the method's colour, dashed for a schedule other than the method's default."""
     return {_label(r): {"color": METHOD_COLORS.get(r["method"]),
-                        "linestyle": "-" if r.get("lr_schedule", "constant") == "constant" else "--"} for r in rows}
+                        "linestyle": "-" if _schedule(r) == _default_schedule(r["method"]) else "--"} for r in rows}
 
 
 def to_rows(returns: torch.Tensor | np.ndarray, lengths: torch.Tensor | np.ndarray, *, method: str, env: str,
-            seed: int, lr_schedule: str = "constant", **extra) -> list[dict]:
-    """Tidy rows (:data:`COLUMNS` plus ``extra`` columns) from returns and mean episode lengths, both ``[K + 1, T]``."""
+            seed: int, lr_schedule: str | None = None, **extra) -> list[dict]:
+    """Tidy rows (:data:`COLUMNS` plus ``extra`` columns) from returns and mean episode lengths, both ``[K + 1, T]``;
+    ``lr_schedule`` None is the method's default schedule."""
     returns, lengths = np.asarray(returns), np.asarray(lengths)
+    lr_schedule = _default_schedule(method) if lr_schedule is None else lr_schedule
     if lengths.shape != returns.shape:
         raise ValueError(f"lengths {lengths.shape} must match returns {returns.shape} ([K + 1, T]).")
     return [
@@ -105,10 +121,10 @@ def run_matrix(rows: Iterable[Mapping], *, env: str, method: str, value: str = "
 
 
 def _ordered_arms(rows: Sequence[Mapping], env: str, methods: Sequence[str] | None) -> list[str]:
-    """Arms present for ``env``: in the order of ``methods`` (each method's constant schedule first), others sorted."""
+    """Arms present for ``env``: in the order of ``methods`` (each method's default schedule first), others sorted."""
     order = {m: i for i, m in enumerate(methods or [])}
-    present = {(r["method"], r.get("lr_schedule", "constant")) for r in rows if r["env"] == env}
-    ranked = sorted(present, key=lambda a: (order.get(a[0], len(order)), a[0], a[1] != "constant", a[1]))
+    present = {(r["method"], _schedule(r)) for r in rows if r["env"] == env}
+    ranked = sorted(present, key=lambda a: (order.get(a[0], len(order)), a[0], a[1] != _default_schedule(a[0]), a[1]))
     return [arm_label(*arm) for arm in ranked]
 
 

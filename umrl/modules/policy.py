@@ -2,7 +2,9 @@
 
 ``make_gaussian_policy`` builds a TorchRL :class:`~torchrl.modules.ProbabilisticActor`: a 2×300 ReLU MLP gives the
 mean, a learned state-independent log-std (initial std ``init_std``) gives the scale, and the action is drawn from an
-independent Normal (no tanh: the environments clip actions to their bounds, as rllab's MAML code did).
+independent Normal (no tanh: the environments clip actions to their bounds, as rllab's MAML code did). The mean
+network starts as maml_rl's does (``sandbox/rocky/tf/core/utils.py``, ``make_dense_layer``): Xavier-uniform weights
+and zero biases in every layer.
 
 Reads ``in_keys`` (concatenated on the last dim), writes ``"loc"``, ``"scale"``, ``"action"`` and
 ``"action_log_prob"``, all with the input's batch shape.
@@ -42,6 +44,10 @@ def make_gaussian_policy(
     if init_std <= 0:
         raise ValueError(f"init_std must be positive, got {init_std}.")
     mlp = MLP(in_features=obs_dim, out_features=act_dim, num_cells=list(hidden), activation_class=nn.ReLU)
+    for layer in mlp.modules():
+        if isinstance(layer, nn.Linear):
+            nn.init.xavier_uniform_(layer.weight)
+            nn.init.zeros_(layer.bias)
     net = nn.Sequential(mlp, AddStateIndependentNormalScale(act_dim, init_value=math.log(init_std), scale_lb=1e-6))
     module = TensorDictModule(_Concat(net) if len(in_keys) > 1 else net, in_keys=list(in_keys),
                               out_keys=["loc", "scale"])

@@ -1,7 +1,7 @@
 """DIAYN: "Diversity is All You Need" (Eysenbach et al., 2018, https://arxiv.org/abs/1802.06070).
 
-A skill-conditioned policy pi(a|s,z) is trained by SAC on the pseudo-reward r = log D(z|s') - log p(z) while a
-discriminator D(z|s') learns to tell the skills apart from the states they visit. UMRL (Gupta et al., 2018,
+A skill-conditioned policy pi(a|s,z) is trained by SAC on the pseudo-reward r = log D(z|s) - log p(z) while a
+discriminator D(z|s) learns to tell the skills apart from the states they visit. UMRL (Gupta et al., 2018,
 https://arxiv.org/abs/1806.04640) keeps D as a task proposal: r_z(s) = log D(z|s) defines one task per skill.
 """
 from __future__ import annotations
@@ -30,8 +30,8 @@ class DIAYNLoss(LossModule):
 
     At every call the batch's ``("next", "reward")`` is recomputed with the *current* discriminator (on a shallow
     copy: the input tensordict is not modified), as DIAYN's reference code does, so replay samples never carry stale
-    rewards. The discriminator is trained on the same state its reward scores (``discriminator_observation``, s_{t+1}
-    by default) with the skill index as label.
+    rewards. The discriminator is trained on the same state its reward scores (``discriminator_observation``: s_t by default,
+    as in DIAYN's reference code) with the skill index as label.
 
     Args:
         actor_network (ProbabilisticActor): pi(a|s,z), e.g. :func:`umrl.modules.sac.make_skill_actor`.
@@ -51,7 +51,7 @@ class DIAYNLoss(LossModule):
 
     Returns (``forward``): a TensorDict with ``loss_actor``, ``loss_qvalue``, ``loss_alpha``,
     ``loss_discriminator`` (each reaches only its own parameters) and detached diagnostics ``alpha``,
-    ``entropy``, ``discriminator_accuracy`` (fraction of the batch whose argmax D(s') is the true skill) and
+    ``entropy``, ``discriminator_accuracy`` (fraction of the batch whose argmax D(s) is the true skill) and
     ``pseudo_reward`` (mean relabelled reward).
 
     The discount is set as in TorchRL: ``loss.make_value_estimator(gamma=0.99)`` (TD(0), gamma 0.99 by default).
@@ -86,7 +86,7 @@ class DIAYNLoss(LossModule):
         Attributes:
             skill (NestedKey): one-hot skill [*B, K]. Defaults to ``"skill"``.
             discriminator_observation (NestedKey): the state D scores and is trained on. Defaults to
-                ``("next", "observation")`` (s_{t+1}).
+                ``"observation"`` (s_t, the state the action was taken in, as DIAYN's reference code).
             action (NestedKey): Defaults to ``"action"``.
             log_prob (NestedKey): Defaults to ``"action_log_prob"``.
             reward (NestedKey): pseudo-reward, written under ``"next"`` on the copy. Defaults to ``"reward"``.
@@ -98,7 +98,7 @@ class DIAYNLoss(LossModule):
         """
 
         skill: NestedKey = "skill"
-        discriminator_observation: NestedKey = ("next", "observation")
+        discriminator_observation: NestedKey = "observation"
         action: NestedKey = "action"
         log_prob: NestedKey = "action_log_prob"
         reward: NestedKey = "reward"

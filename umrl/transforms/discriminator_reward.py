@@ -1,10 +1,12 @@
 """DIAYN pseudo-reward r_z(s) = log D(z|s) - log p(z) with a uniform prior p(z) = 1/K.
 
-Which state: by default the reward of transition (s_t, a_t, s_{t+1}) scores the state the action led to,
-s_{t+1} = ``("next", "observation")`` (as DIAYN's reference code and UMRL's r_z(s) on visited states). The
-discriminator loss in :class:`umrl.objectives.diayn.DIAYNLoss` uses the same key, so training and reward agree. Pass
-``observation_key="observation"`` to score s_t instead. The skill is read from the root ``"skill"`` (the skill that
-produced a_t; identical to ``("next", "skill")`` within an episode).
+Which state: by default the reward of transition (s_t, a_t, s_{t+1}) scores the state the action was taken in,
+s_t = ``"observation"``, as DIAYN's reference code does (``sac/algos/diayn.py`` feeds the discriminator the batch's
+``observations``, for the pseudo-reward and for its cross-entropy alike). The discriminator loss in
+:class:`umrl.objectives.diayn.DIAYNLoss` uses the same key, so training and reward agree. The MAML task proposals
+(:mod:`umrl.proposals`) pass ``observation_key=("next", "observation")``: a task rewards the state its action led
+to, as the hand-designed task rewards do. The skill is read from the root ``"skill"`` (the skill that produced a_t;
+identical to ``("next", "skill")`` within an episode).
 
 The reward overwrites ``("next", "reward")`` (zero in the reward-free CMPs); the env's own reward, when it has one,
 stays under ``("next", "env_reward")``.
@@ -51,7 +53,7 @@ class DiscriminatorReward(Transform):
         num_skills (int): K; the prior is uniform, log p(z) = -log K.
 
     Keyword Args:
-        observation_key (NestedKey): the state fed to D. Defaults to ``("next", "observation")`` (s_{t+1}).
+        observation_key (NestedKey): the state fed to D. Defaults to ``"observation"`` (s_t, DIAYN's reference).
         skill_key (NestedKey): one-hot skill [*B, K]. Defaults to ``"skill"``.
         reward_key (NestedKey): written under ``"next"``. Defaults to ``"reward"``.
 
@@ -71,7 +73,7 @@ class DiscriminatorReward(Transform):
         discriminator: TensorDictModuleBase,
         num_skills: int,
         *,
-        observation_key: NestedKey = ("next", "observation"),
+        observation_key: NestedKey = "observation",
         skill_key: NestedKey = "skill",
         reward_key: NestedKey = "reward",
     ):
