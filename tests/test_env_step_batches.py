@@ -12,8 +12,20 @@ from umrl.modules.policy import make_gaussian_policy
 from umrl.objectives.policy_gradient import episode_mean, episode_returns
 from umrl.rollout import collect_env_steps, first_env_steps
 
-NEAR = torch.tensor([[0.02, -0.01], [-0.01, 0.0]])  # goals next to the start: many episodes end early
+NEAR = torch.tensor([[0.2, 0.0], [0.4, 0.0]])  # on the straight policy's path: its episodes end after 4 and 8 steps
 FAR = torch.tensor([[5.0, 5.0], [-5.0, 5.0]])  # out of reach in the horizon: every episode runs to the end
+
+
+def _straight_policy():
+    """Moves (almost deterministically) 0.05 along x per step: zero weights, output bias (0.5, 0), tiny std."""
+    policy = make_gaussian_policy(2, 2, hidden=(8,), init_std=1e-4)
+    with torch.no_grad():
+        for name, p in policy.named_parameters():
+            if "scale" not in name:
+                p.zero_()
+        [*_, last] = [m for m in policy.modules() if isinstance(m, torch.nn.Linear)]
+        last.bias.copy_(torch.tensor([0.5, 0.0]))
+    return policy
 
 
 def _batch_with_lengths(lengths: list[list[int]], horizon: int = 10) -> TensorDict:
@@ -31,21 +43,15 @@ def test_first_env_steps_keeps_each_tasks_first_episodes_until_the_budget_the_la
 
 
 def test_collect_env_steps_reaches_every_tasks_budget_with_more_episodes_where_they_end_early():
-    torch.manual_seed(0)
-    horizon, per_round, budget = 20, 4, 100
-    policy = make_gaussian_policy(2, 2, hidden=(8,), init_std=0.3)
-    env = make_eval_env("point_nav", NEAR, per_round, seed=0, horizon=horizon)
-    batch = collect_env_steps(env, policy, num_tasks=2, horizon=horizon, env_steps=budget)
+    horizon, per_round, budget = 20, 4, 30
+    env = make_eval_env("point_nav", torch.cat([NEAR, FAR[:1]]), per_round, seed=0, horizon=horizon)
+    batch = collect_env_steps(env, _straight_policy(), num_tasks=3, horizon=horizon, env_steps=budget)
     env.close()
-    lengths = batch["mask"].sum(-1)  # [T, M]
-    kept = lengths > 0
-    steps = lengths.sum(-1)
-    last = torch.stack([lengths[t][kept[t]][-1] for t in range(2)])
-    assert (steps >= budget).all() and (steps - last < budget).all()  # the budget reached by the last episode
-    assert (kept.cumsum(-1) == torch.arange(1, batch.shape[1] + 1)).logical_or(~kept).all()  # kept ones come first
-    assert kept.sum(-1).max() > budget // horizon  # early ends: more episodes than budget / horizon
+    # 4-step episodes: 8 of them (28 steps before the 8th); 8-step: 4 (24 before the 4th); 20-step: 2 (20 before)
+    assert batch.shape == (3, 8, horizon)  # two rounds of 4 were needed for the first task
+    assert batch["mask"].sum(-1).tolist() == [[4] * 8, [8] * 4 + [0] * 4, [20] * 2 + [0] * 6]
     with pytest.raises(ValueError, match=r"env_steps: got 0; expected an integer >= 1"):
-        collect_env_steps(env, policy, num_tasks=2, horizon=horizon, env_steps=0)
+        collect_env_steps(env, _straight_policy(), num_tasks=3, horizon=horizon, env_steps=0)
 
 
 def test_env_step_batches_of_full_episodes_equal_the_fixed_trajectory_protocol():
@@ -63,23 +69,21 @@ def test_env_step_batches_of_full_episodes_equal_the_fixed_trajectory_protocol()
 
 
 def test_adapter_records_the_mean_return_over_the_kept_episodes():
-    torch.manual_seed(0)
     horizon, trajectories, budget = 20, 4, 60
-    policy = make_gaussian_policy(2, 2, hidden=(8,), init_std=0.3)
-    config = AdaptationConfig(num_steps=1, num_trajectories=trajectories, horizon=horizon, env_steps=budget)
-    goals = torch.cat([NEAR[:1], FAR[:1]])  # the far task keeps budget / horizon episodes, the near one more
-    env = make_eval_env("point_nav", goals, trajectories, seed=0, horizon=horizon)
+    config = AdaptationConfig(num_steps=0, num_trajectories=trajectories, horizon=horizon, env_steps=budget)
+    env = make_eval_env("point_nav", torch.cat([NEAR[:1], FAR[:1]]), trajectories, seed=0, horizon=horizon)
     seen = []
-    returns = TaskAdapter(policy, env, 2, optimizer="sgd", lr=0.1, config=config).run(
+    returns = TaskAdapter(_straight_policy(), env, 2, optimizer="sgd", lr=0.1, config=config).run(
         lambda k, batch: seen.append(batch.clone()))
     env.close()
-    for k, batch in enumerate(seen):
-        kept = batch["mask"].any(-1)
-        assert (batch["mask"].sum((-2, -1)) >= budget).all()
-        expected = torch.stack([episode_returns(batch)[t][kept[t]].mean() for t in range(2)])
-        torch.testing.assert_close(returns[k], expected)
-        torch.testing.assert_close(episode_mean(episode_returns(batch), batch), expected)
-    assert all((~batch["mask"][1].any(-1)).any() for batch in seen)  # the far task is padded with empty ones
+    (batch,) = seen
+    kept = batch["mask"].any(-1)
+    assert kept.sum(-1).tolist() == [15, 3]  # the far task is padded with 12 empty trajectories
+    expected = torch.stack([episode_returns(batch)[t][kept[t]].mean() for t in range(2)])
+    # the near task's 4-step episodes: -(0.15 + 0.1 + 0.05 + 0)
+    torch.testing.assert_close(expected[0], torch.tensor(-0.3), rtol=0, atol=1e-3)
+    torch.testing.assert_close(returns[0], expected)
+    torch.testing.assert_close(episode_mean(episode_returns(batch), batch), expected)
 
 
 @pytest.mark.parametrize("value, error", [(0, ValueError), (-4000, ValueError), (2.5, TypeError), (True, TypeError)])
