@@ -1,4 +1,5 @@
-# Two commands: `make run` (the main job) and `make test` (the test suite). Each sets itself up.
+# Two commands: `make run` (the main job) and `make test` (the test suite and the docstring examples). Each sets
+# itself up.
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
@@ -19,9 +20,10 @@ run: $(STAMP)
 
 test: $(STAMP)
 	WANDB_MODE=disabled $(BIN)/python -m pytest -q tests
+	WANDB_MODE=disabled $(BIN)/python -m pytest -q --doctest-modules umrl
 
 lint: $(STAMP)
-	$(BIN)/ruff check umrl recipes benchmarks tests
+	$(BIN)/ruff check umrl recipes benchmarks tests examples
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/throughput.py

@@ -43,8 +43,8 @@ from umrl.runtime import seed_everything
 from umrl.skill_coverage import final_states
 from umrl.trajectories import trajectory_mask
 
-#: ant's observation keeps x-y, so qpos[2], the torso height, is observation dim 2
-ANT_TORSO_Z = 2
+#: ant's observation starts at qpos[2], the torso height (x-y are excluded)
+ANT_TORSO_Z = 0
 HEADER = (f"{'cell':<36}{'k':>4}{'return':>10}{'length':>8}{'terminated':>12}{'reward/step':>13}"
           f"{'jumped':>8}{'end error':>11}{'match':>10}")
 
@@ -63,7 +63,7 @@ def episode_stats(batch: TensorDictBase, env_name: str) -> dict[str, float]:
              "terminated": terminated.any(-1).float().mean().item(),
              "reward/step": (returns.sum() / length.sum()).item(), "jumped": float("nan"),
              "end error": end_error.mean().item()}
-    if get_env_spec(env_name).make is ANT.make:  # the Ant CMP, whatever its task reward (ant, ant_maml_reward)
+    if get_env_spec(env_name).make is ANT.make:  # the Ant CMP, whatever its task reward
         above = batch["next", "observation"][..., ANT_TORSO_Z] > AntBatchedEnv.HEALTHY_Z_RANGE[1]
         stats["jumped"] = (terminated & above).any(-1).float().mean().item()
     return stats

@@ -2,6 +2,7 @@
 
 Runs UML-DIAYN, UML-random, oracle, VIME-init, DIAYN-init and scratch on the chosen envs and seeds::
 
+    python benchmarks/suite.py profile=tiny                      # every method at toy budgets (~140 CPU-seconds)
     python benchmarks/suite.py profile=quick                     # point_nav, reduced budgets, minutes on 2 cores
     python benchmarks/suite.py profile=reference envs=[point_nav]  # the reference code's settings
     python benchmarks/suite.py profile=quick launcher.ray_address=auto   # jobs as Ray tasks on a cluster
@@ -41,6 +42,7 @@ the tail of its log. Every value is a config override (``benchmarks/config/``).
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
 import shlex
@@ -50,6 +52,7 @@ import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import hydra
@@ -60,7 +63,7 @@ from umrl.configs import ConfigError, validate
 from umrl.configs.maml import hvp_errors
 from umrl.configs.suite import RECIPE_SCHEMAS, SuiteConfig, needed_pretraining, pretrain_seeds, reuse_dir
 from umrl.configs.validate import check_partial, fill_env_defaults
-from umrl.launch import Job, make_launcher, run_jobs
+from umrl.launch import Job, directory_lock, make_launcher, run_jobs
 from umrl.metatest import (
     CellSpec,
     Pretraining,
@@ -68,6 +71,7 @@ from umrl.metatest import (
     ablation_table,
     arm_label,
     arm_styles,
+    cell_finished,
     curves_from_rows,
     default_lr_schedule,
     get_method,
@@ -90,7 +94,15 @@ from umrl.metatest.cache import (
     source_version,
     write_json_atomic,
 )
-from umrl.runtime import Checkpointer, log_image, log_metrics, make_logger, to_container, write_text_atomic
+from umrl.runtime import (
+    Checkpointer,
+    close_logger,
+    log_image,
+    log_metrics,
+    make_logger,
+    to_container,
+    write_text_atomic,
+)
 
 BUDGET_KEYS = {"diayn": "collector.total_frames", "maml": "iterations", "vime": "iterations"}
 """Each recipe's total budget, in the unit of its checkpoints' step numbers (``step_<N>.pt``: env frames for DIAYN,
@@ -296,7 +308,7 @@ def plan(cfg: DictConfig, group: str, code: str = "", runs: Mapping | None = Non
                     settings = cell_spec(cfg, method.name, env, seed, checkpoint, lr_schedule=schedule)
                     spec = keyed_cell(settings, checkpoint_id, code, out / "cells" / env / method.name / f"seed{seed}{suffix}")
                     key = f"cell/{env}/{method.name}/seed{seed}{suffix.replace('.', '/')}"
-                    jobs[key] = Job(key=key, fn=run_cell, args=(spec,), deps=deps, done=Path(spec.output).exists,
+                    jobs[key] = Job(key=key, fn=run_cell, args=(spec,), deps=deps, done=partial(cell_finished, spec.output),
                                     what=f"meta-test of {method.name} on {env}, seed {seed} -> {spec.output}",
                                     log=out / "logs" / f"cell_{env}_{method.name}_seed{seed}{suffix}.log")
     # Pre-training first, runs others depend on before them (DIAYN before MAML(diayn)), so the critical path starts at once.
@@ -331,7 +343,7 @@ def plan_ablation(cfg: DictConfig, runs: Mapping, code: str = "") -> list[Job]:
                     spec = keyed_cell(settings, checkpoint_identity(run, file), code,
                                       out / "ablation" / env / name / f"seed{seed}" / f"iter{iteration}")
                     key = f"ablation/{env}/{name}/seed{seed}/iter{iteration}"
-                    jobs.append(Job(key=key, fn=run_cell, args=(spec,), done=Path(spec.output).exists,
+                    jobs.append(Job(key=key, fn=run_cell, args=(spec,), done=partial(cell_finished, spec.output),
                                     what=f"ablation meta-test of {name} on {env}, seed {seed}, {file.name}",
                                     log=out / "logs" / f"ablation_{env}_{name}_seed{seed}_iter{iteration}.log"))
     return jobs
@@ -398,18 +410,12 @@ def _log_to_wandb(cfg: DictConfig, group: str, curves, records, out: Path) -> No
             summary = {f"summary/{r['metric']}_iqm": r["iqm"] for r in records
                        if r["env"] == env and r["method"] == method}
             log_metrics(logger, summary, step=len(curve.mean) - 1)
-            _finish(logger)
+            close_logger(logger)
     logger = make_logger(logger_cfg, exp_name="report", config=to_container(cfg), log_dir=out)
     for name in ("curves", "ablation"):
         if (out / f"{name}.png").exists():
             log_image(logger, f"report/{name}", out / f"{name}.png", step=0)
-    _finish(logger)
-
-
-def _finish(logger) -> None:
-    experiment = getattr(logger, "experiment", None)
-    if experiment is not None and hasattr(experiment, "finish"):
-        experiment.finish()
+    close_logger(logger)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -461,6 +467,11 @@ def run_suite(cfg: DictConfig, *, log: Callable[[str], None] = print) -> str:
     :class:`~umrl.configs.ConfigError` before any job starts.
     """
     cfg = validate(cfg, SuiteConfig)
+    with directory_lock(cfg.output_dir):  # a second suite in the same output_dir refuses, naming this one's pid
+        return _run_suite(cfg, log)
+
+
+def _run_suite(cfg: DictConfig, log: Callable[[str], None]) -> str:
     out = Path(cfg.output_dir).absolute()
     code = code_version()
     group = suite_group(cfg)
@@ -500,8 +511,9 @@ def run_suite(cfg: DictConfig, *, log: Callable[[str], None] = print) -> str:
 
 @hydra.main(version_base="1.3", config_path="config", config_name="suite")
 def main(cfg: DictConfig) -> None:
-    run_suite(cfg)
+    run_suite(cfg, log=logging.getLogger(__name__).info)  # also into hydra/suite.log
 
 
 if __name__ == "__main__":
+    recipes.register_help_text(Path(__file__).resolve().parent / "config")
     main()

@@ -21,12 +21,12 @@ from pathlib import Path
 from hydra import compose as hydra_compose
 from hydra import initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 CONFIG_DIR = Path(__file__).resolve().parent / "config"
 RECIPES = ("diayn", "maml", "vime")
 
-__all__ = ["CONFIG_DIR", "RECIPES", "compose", "config_dir", "train"]
+__all__ = ["CONFIG_DIR", "RECIPES", "compose", "config_dir", "register_help_text", "train"]
 
 
 @contextmanager
@@ -61,3 +61,14 @@ def train(name: str, overrides: Sequence[str] = ()) -> dict:
     """Run recipe ``name`` in this process: ``recipes.<name>.train(compose(name, overrides))``."""
     _check_name(name)
     return importlib.import_module(f"recipes.{name}").train(compose(name, overrides))
+
+
+def register_help_text(directory: str | Path = CONFIG_DIR) -> None:
+    """Make ``${umrl_config_text:<name>}`` the text of ``<directory>/<name>.yaml`` as written, comments included: the
+    scripts' ``--help`` (their ``hydra.help.template``) shows every key with its comment. The scripts call it under
+    ``if __name__ == "__main__"``, before Hydra reads ``--help``."""
+    def text(name: str) -> str:
+        return (Path(directory) / f"{name}.yaml").read_text().replace("$", "$$")  # Hydra fills the template with
+        # string.Template, where "$$" is a literal "$"
+
+    OmegaConf.register_new_resolver("umrl_config_text", text, replace=True)

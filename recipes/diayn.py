@@ -25,6 +25,7 @@ the envs' reset noise: the resumed run finishes bit-identical to an uninterrupte
 """
 from __future__ import annotations
 
+import logging
 import time
 from pathlib import Path
 
@@ -36,6 +37,7 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import RewardSum
 
+from recipes import register_help_text
 from umrl.checkpoints.diayn import DIAYN_FORMAT, check_resumable, save_diayn_checkpoint
 from umrl.configs import RESUME_ALLOW, check_resume, validate
 from umrl.configs.diayn import DIAYNConfig
@@ -49,14 +51,17 @@ from umrl.runtime import (
     Checkpointer,
     check_finite,
     env_state,
+    finishing_loggers,
     isolated_rng,
     load_env_state,
     load_replay_buffer_state,
     log_image,
+    log_location,
     log_metrics,
     make_logger,
     replay_buffer_state,
     rng_state,
+    run_summary,
     seed_everything,
     set_rng_state,
 )
@@ -96,6 +101,7 @@ def evaluate(cfg, env, actor, discriminator, num_skills, step, figure_path, logg
     return metrics
 
 
+@finishing_loggers()
 def train(cfg: DictConfig) -> dict:
     """Run DIAYN as configured (checked against :class:`~umrl.configs.diayn.DIAYNConfig` first); return the last
     logged metrics (also the final evaluation).
@@ -248,11 +254,18 @@ def train(cfg: DictConfig) -> dict:
     return {**metrics, **final, **random_metrics, "checkpoint": str(path)}
 
 
+SUMMARY_KEYS = ("train/frames", "train/updates", "train/discriminator_accuracy", "eval/final_state_accuracy",
+                "eval/random_final_state_accuracy")
+"""What the command line prints when a run ends (every metric is in the logs)."""
+
+
 @hydra.main(version_base="1.3", config_path="config", config_name="diayn")
 def main(cfg: DictConfig) -> None:
     result = train(cfg)
-    print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in result.items()})
+    logging.getLogger(__name__).info(run_summary(f"diayn {cfg.env.name} finished", result, SUMMARY_KEYS,
+                                                 log_location(cfg.logger, cfg.output_dir)))
 
 
 if __name__ == "__main__":
+    register_help_text()
     main()

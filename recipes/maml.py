@@ -19,7 +19,7 @@ CPU) or ``exact`` (double backward of the KL through the inner step).
 
 Logged per iteration: ``train/`` return_pre, return_post (mean undiscounted return of the pre/post-update
 trajectories), reward_mean/std/min/max (task rewards of the pre-update batch), kl, surrogate_before,
-improvement, backtracks (line-search trials; of them rejected_surrogate and rejected_kl), accepted, grad_norm,
+improvement, backtracks (line-search trials; of them rejected_surrogate and rejected_kl, of those nonfinite_kl), accepted, grad_norm,
 step_norm, log_std (θ's action log-std after the meta-step, mean over action dimensions); ``time/`` collect_s
 (rollouts + advantages), learn_s (inner adaptation for the post-update policy + TRPO meta-step), inner_s (that
 adaptation alone, built with the graph the meta-step differentiates through), the meta-step's parts objective_s (surrogate and KL through
@@ -29,6 +29,7 @@ line_search_s, env_steps_per_s (pre + post env steps per second of collect_s), e
 from __future__ import annotations
 
 import contextlib
+import logging
 from collections.abc import Callable
 from pathlib import Path
 
@@ -37,6 +38,7 @@ import torch
 import tqdm
 from omegaconf import DictConfig
 
+from recipes import register_help_text
 from umrl.checkpoints import MAML_FORMAT, save_maml_checkpoint
 from umrl.configs import check_resume, validate
 from umrl.configs.maml import MAMLConfig
@@ -52,10 +54,13 @@ from umrl.runtime import (
     Checkpointer,
     check_finite,
     env_state,
+    finishing_loggers,
     load_env_state,
+    log_location,
     log_metrics,
     make_logger,
     rng_state,
+    run_summary,
     seed_everything,
     set_rng_state,
 )
@@ -174,6 +179,7 @@ def build(cfg: DictConfig):
     return proposal, policy, loss, trpo
 
 
+@finishing_loggers()
 def train(cfg: DictConfig) -> dict:
     """Meta-train as configured (checked against :class:`~umrl.configs.maml.MAMLConfig` first); return the last
     iteration's metrics and the final checkpoint path. ``resume=true`` restores the policy, the counters, every RNG
@@ -203,6 +209,9 @@ def train(cfg: DictConfig) -> dict:
         iteration, env_steps = state["iteration"], state["env_steps"]
         set_rng_state(state["rng"], task=generator)
         load_env_state(env, state["env"])
+        if iteration >= cfg.iterations:  # as DIAYN and VIME: a resume with nothing to do is a mistake
+            raise ValueError(f"nothing to do: the checkpoint is at iteration {iteration} >= iterations={cfg.iterations}; "
+                             "raise iterations.")
 
     def save():
         return save_maml_checkpoint(checkpointer, meta=meta, policy=policy, iteration=iteration,
@@ -212,7 +221,7 @@ def train(cfg: DictConfig) -> dict:
         save()  # iteration 0: the initialisation before meta-training, the ablation's first point
     logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, config=cfg, log_dir=out_dir)
     metrics: dict[str, float] = {}
-    path = checkpointer.latest()  # a run resumed at its budget returns its last checkpoint
+    path = checkpointer.latest()
     progress = tqdm.tqdm(total=cfg.iterations, initial=iteration, disable=not cfg.progress, desc="meta-iterations")
     while iteration < cfg.iterations:
         metrics = meta_iteration(cfg, proposal, policy, loss, trpo, generator)
@@ -229,11 +238,17 @@ def train(cfg: DictConfig) -> dict:
     return {**metrics, "iteration": iteration, "checkpoint": str(path)}
 
 
+SUMMARY_KEYS = ("iteration", "train/return_pre", "train/return_post", "train/kl", "time/learn_s")
+"""What the command line prints when a run ends (every metric is in the logs)."""
+
+
 @hydra.main(version_base="1.3", config_path="config", config_name="maml")
 def main(cfg: DictConfig) -> None:
     result = train(cfg)
-    print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in result.items()})
+    logging.getLogger(__name__).info(run_summary(f"maml {cfg.env.name} finished", result, SUMMARY_KEYS,
+                                                 log_location(cfg.logger, cfg.output_dir)))
 
 
 if __name__ == "__main__":
+    register_help_text()
     main()

@@ -15,10 +15,12 @@ objective with no inner step) with linear-baseline GAE advantages
 (:func:`umrl.objectives.policy_gradient.compute_advantages`).
 
 Logged (namespaced): ``bonus/`` info gain and bonus statistics; ``dynamics/`` training loss, log-likelihood, KL to
-the prior, held-out log-likelihood and ELBO per transition; ``trpo/`` improvement, KL, acceptance, backtracks;
+the prior, held-out log-likelihood and ELBO per transition; ``train/`` the TRPO step's improvement, KL, acceptance,
+backtracks (the names MAML's meta-step logs), action_std and frames;
 ``coverage/`` of the batch's visited states (x-y cells and their area for point_nav and ant, velocity ranges for
 half_cheetah), the untrained policy's under ``coverage/initial_*`` and everything visited so far under
-``coverage/cumulative_*`` (all from :mod:`umrl.skill_coverage`); ``time/`` env steps/s and seconds per phase. The
+``coverage/cumulative_*`` (all from :mod:`umrl.skill_coverage`); ``time/`` env steps/s and seconds per phase (the
+TRPO step's direction_s, cg_s and line_search_s too, as in MAML's). The
 figure ``<output_dir>/figures/coverage.png`` shows the last batch's visited states against the untrained policy's.
 
 Checkpoints: ``<output_dir>/checkpoints/step_<iteration>.pt``, format ``umrl.vime.v1`` (documented in
@@ -28,6 +30,7 @@ the counters, every RNG and the env's reset noise (bit-identical to an uninterru
 """
 from __future__ import annotations
 
+import logging
 import math
 import time
 from pathlib import Path
@@ -39,6 +42,7 @@ from omegaconf import DictConfig
 from tensordict import TensorDictBase
 from torchrl.data import LazyTensorStorage, ReplayBuffer, TensorDictReplayBuffer
 
+from recipes import register_help_text
 from umrl.checkpoints import VIME_FORMAT, save_vime_checkpoint
 from umrl.configs import check_resume, validate
 from umrl.configs.vime import VIMEConfig
@@ -55,12 +59,15 @@ from umrl.runtime import (
     Checkpointer,
     check_finite,
     env_state,
+    finishing_loggers,
     load_env_state,
     load_replay_buffer_state,
+    log_location,
     log_metrics,
     make_logger,
     replay_buffer_state,
     rng_state,
+    run_summary,
     seed_everything,
     set_rng_state,
 )
@@ -104,6 +111,7 @@ def heldout_metrics(loss_fn: VIMELoss, holdout: TensorDictBase) -> dict[str, flo
     return {"heldout_log_likelihood": log_lik, "heldout_elbo": elbo}
 
 
+@finishing_loggers()
 def train(cfg: DictConfig) -> dict:
     """Run VIME pre-training as configured (checked against :class:`~umrl.configs.vime.VIMEConfig` first); return
     the last metrics and the checkpoint path. ``resume=true`` (with ``checkpoint.save_replay=true``, the default)
@@ -217,8 +225,8 @@ def train(cfg: DictConfig) -> dict:
             "bonus/intrinsic_max": float(intrinsic.max()),
             "bonus/intrinsic_return": float((batch["next", "reward"].squeeze(-1) * mask).sum(-1).mean()),
             **{f"dynamics/{k}": v for k, v in dyn_metrics.items()},
-            **{f"trpo/{k}": v for k, v in trpo_info.items()},
-            "policy/action_std": float(batch["scale"].mean()),
+            **{f"{'time' if k.endswith('_s') else 'train'}/{k}": v for k, v in trpo_info.items()},
+            "train/action_std": float(batch["scale"].mean()),
             **{f"coverage/{k}": v for k, v in {**coverage, **cumulative}.items()},
             **{f"coverage/initial_{k}": v for k, v in initial_coverage.items()},
             "time/env_steps_per_s": batch.numel() / max(collect_s, 1e-9), "time/collect_s": collect_s,
@@ -246,11 +254,18 @@ def train(cfg: DictConfig) -> dict:
     return {**metrics, "checkpoint": str(path)}
 
 
+SUMMARY_KEYS = ("train/frames", "bonus/info_gain_median", "dynamics/heldout_log_likelihood", "coverage/cumulative_area",
+                "coverage/cumulative_velocity_range")
+"""What the command line prints when a run ends (every metric is in the logs)."""
+
+
 @hydra.main(version_base="1.3", config_path="config", config_name="vime")
 def main(cfg: DictConfig) -> None:
     result = train(cfg)
-    print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in result.items()})
+    logging.getLogger(__name__).info(run_summary(f"vime {cfg.env.name} finished", result, SUMMARY_KEYS,
+                                                 log_location(cfg.logger, cfg.output_dir)))
 
 
 if __name__ == "__main__":
+    register_help_text()
     main()

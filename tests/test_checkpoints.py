@@ -1,8 +1,8 @@
 """umrl.checkpoints: one format/version check for every loader and resume; saves carry the meta their loaders read."""
 import pytest
-import torch
 
 from umrl import checkpoints
+from umrl.checkpoint_file import write_state
 from umrl.checkpoints import DIAYN_FORMAT, MAML_FORMAT, VIME_FORMAT, CheckpointFormat
 from umrl.configs import check_resume
 from umrl.runtime import Checkpointer
@@ -21,7 +21,7 @@ def test_every_loader_rejects_another_format(tmp_path, fmt):
     for name in LOADERS[fmt]:
         with pytest.raises(ValueError, match=f"not a {fmt.what} checkpoint.*{other.name}"):
             getattr(checkpoints, name)(tmp_path)
-    torch.save([1, 2], tmp_path / "step_9.pt")
+    write_state([1, 2], tmp_path / "step_9.pt")
     with pytest.raises(ValueError, match="format 'list'"):
         fmt.load(tmp_path / "step_9.pt")
 
@@ -51,6 +51,28 @@ def test_resume_checks_format_and_meta(tmp_path):
         MAML_FORMAT.load_for_resume(checkpointer, meta, lambda saved: check_resume(saved, {**config, "seed": 3}))
     with pytest.raises(ValueError, match="not a VIME checkpoint"):
         VIME_FORMAT.load_for_resume(checkpointer, {})
+
+
+@pytest.mark.parametrize("fmt", list(LOADERS), ids=lambda f: f.what)
+def test_a_checkpoint_of_another_observation_size_is_refused_by_every_loader(tmp_path, fmt):
+    """A run of the 107-D ant (x-y in the observation) does not load for today's 105-D ant: one clear error."""
+    meta = {**dict.fromkeys(fmt.meta_keys), "env": "ant", "obs_dim": 107}
+    fmt.save(Checkpointer(tmp_path / "old" / "checkpoints"), 3, meta)
+    for name in LOADERS[fmt]:
+        with pytest.raises(ValueError, match=r"observation size: got 107 \(.*checkpoint .*step_3\.pt\); expected "
+                                             r"105, the observation size of env 'ant'"):
+            getattr(checkpoints, name)(tmp_path / "old")
+    fmt.save(Checkpointer(tmp_path / "new" / "checkpoints"), 3, {**meta, "obs_dim": 105})
+    assert fmt.load(tmp_path / "new")["meta"]["obs_dim"] == 105
+
+
+def test_meta_test_refuses_an_old_ant_checkpoint_before_any_work(tmp_path):
+    from umrl.metatest import load_initialisation
+
+    MAML_FORMAT.save(Checkpointer(tmp_path / "checkpoints"), 1,
+                     {**dict.fromkeys(MAML_FORMAT.meta_keys), "env": "ant", "obs_dim": 107})
+    with pytest.raises(ValueError, match=r"observation size: got 107 .*expected 105"):
+        load_initialisation("oracle", "ant", tmp_path, seed=0)
 
 
 def test_public_names():

@@ -9,6 +9,7 @@ import torch
 from omegaconf import OmegaConf
 from script_loading import REPO, compose_config
 
+from umrl.checkpoints import MAML_FORMAT
 from umrl.configs import ConfigError, check_resume, resume_diff, validate
 from umrl.configs.diayn import DIAYNConfig
 from umrl.configs.maml import MAMLConfig
@@ -16,6 +17,7 @@ from umrl.configs.suite import SuiteConfig
 from umrl.configs.validate import check_partial
 from umrl.configs.vime import VIMEConfig
 from umrl.envs import ENV_NAMES
+from umrl.runtime import Checkpointer
 
 RECIPES = {"diayn": DIAYNConfig, "maml": MAMLConfig, "vime": VIMEConfig}
 SCHEMAS = {**RECIPES, "suite": SuiteConfig}
@@ -146,6 +148,9 @@ NO_GPU = pytest.mark.skipif(torch.cuda.is_available(), reason="device=cuda is va
      "trpo.hvp=analytic (it differentiates the task-batched MLP; trpo.hvp=gauss_newton takes any)")),
     ("maml", ["policy.hidden=[]"], "policy.hidden: got []; expected a non-empty list of integers >= 1"),
     ("vime", ["env.name=walker"], "env.name: got 'walker'; expected one of 'point_nav', 'half_cheetah', 'ant'"),
+    # a removed env (ant's reward is now the MAML code's, which this ablation env used to carry)
+    ("maml", ["env.name=ant_maml_reward"],
+     "env.name: got 'ant_maml_reward'; expected one of 'point_nav', 'half_cheetah', 'ant'"),
     ("vime", ["logger.backend=tensorboard"], ("logger.backend: got 'tensorboard'; expected one of 'wandb', 'csv', "
      "'none'")),
     ("vime", ["dynamics.holdout_fraction=1"], "dynamics.holdout_fraction: got 1; expected a finite number in (0, 1)"),
@@ -153,7 +158,6 @@ NO_GPU = pytest.mark.skipif(torch.cuda.is_available(), reason="device=cuda is va
      "collector.frames_per_batch: got 1601; expected a multiple of env.num_envs (16)"),
     ("suite", ["methods=[scratch,sac]"], ("methods[1]: got 'sac'; expected one of 'uml_diayn', 'uml_random', "
      "'oracle', 'vime_init', 'diayn_init', 'scratch'")),
-    ("suite", ["protocol.num_steps=3"], "report.steps[2]: got 5; expected an integer <= protocol.num_steps (3)"),
     ("suite", ["++pretrain.maml.overrides.iterations=-5"],
      "pretrain.maml.overrides.iterations: got -5; expected null or an integer >= 1"),
     ("suite", ["+pretrain.vime.overrides.itrations=5"],
@@ -166,6 +170,11 @@ def test_bad_input_is_one_clear_error(name, overrides, line):
     assert line.split(";")[0] in str(info.value)
 
 
+def test_report_steps_beyond_k_are_left_out_not_refused():
+    """report.steps lists columns wanted; with a smaller K (protocol.num_steps) the table keeps those within K."""
+    validate(compose("suite", ["protocol.num_steps=3"]), SuiteConfig)  # report.steps [0, 1, 5]: 5 is dropped
+
+
 def test_missing_reuse_path_is_refused_before_any_work(tmp_path):
     template = str(tmp_path / "maml_{proposal}" / "seed{seed}")
     cfg = compose("suite", ["profile=quick", f"pretrain.maml.reuse='{template}'"])
@@ -174,9 +183,9 @@ def test_missing_reuse_path_is_refused_before_any_work(tmp_path):
     run = tmp_path / "maml_diayn" / "seed0"
     assert (f"pretrain.maml.reuse: got '{template}' (env=point_nav seed=0: {run} has no checkpoint); "
             "expected a finished run directory holding checkpoints/step_*.pt") in info.value.errors
-    for proposal in ("diayn", "random", "oracle"):  # a run with a checkpoint is accepted
-        (tmp_path / f"maml_{proposal}" / "seed0" / "checkpoints").mkdir(parents=True)
-        (tmp_path / f"maml_{proposal}" / "seed0" / "checkpoints" / "step_20.pt").touch()
+    for proposal in ("diayn", "random", "oracle"):  # a run with a checkpoint of the method is accepted
+        meta = {**dict.fromkeys(MAML_FORMAT.meta_keys, 1), "env": "point_nav", "proposal": proposal, "obs_dim": 2}
+        MAML_FORMAT.save(Checkpointer(tmp_path / f"maml_{proposal}" / "seed0" / "checkpoints"), 20, meta)
     validate(cfg, SuiteConfig)
 
 

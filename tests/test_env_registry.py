@@ -62,7 +62,7 @@ def line_env():
     unregister_env("line")
 
 
-@pytest.mark.parametrize("name", ["point_nav", "half_cheetah", "ant", "ant_maml_reward"])
+@pytest.mark.parametrize("name", ["point_nav", "half_cheetah", "ant"])
 def test_builtin_records_match_their_envs(name):
     spec = get_env_spec(name)
     env = make_env(name, 2, seed=0, horizon=3)
@@ -80,6 +80,9 @@ def test_bad_records_and_names_are_rejected():
         register_env(get_env_spec("point_nav"))
     with pytest.raises(ValueError, match="unknown env 'nowhere'; valid choices"):
         get_env_spec("nowhere")
+    with pytest.raises(ValueError, match=r"unknown env 'ant_maml_reward'; valid choices: \['point_nav', "
+                                         r"'half_cheetah', 'ant'"):
+        get_env_spec("ant_maml_reward")  # removed: ant carries the MAML code's reward
     with pytest.raises(ValueError, match="coverage_key 'y'"):
         EnvSpec(**{**LINE.__dict__, "coverage_key": "y"})
     with pytest.raises(ValueError, match="num_skills"):

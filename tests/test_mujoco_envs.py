@@ -11,10 +11,10 @@ from umrl.envs.mujoco_batched import BATCHED_ENVS
 from umrl.envs.tasks import get_task_family
 from umrl.runtime import env_state, load_env_state
 
-DIMS = {"half_cheetah": (17, 6), "ant": (107, 8)}
+DIMS = {"half_cheetah": (17, 6), "ant": (105, 8)}
 PHYSICS = {
     "half_cheetah": {"x_position": 1, "x_velocity": 1},
-    "ant": {"xy_position": 2, "x_velocity": 1, "reward_survive": 1, "reward_contact": 1},
+    "ant": {"xy_position": 2, "xy_com": 2, "x_velocity": 1, "reward_survive": 1, "reward_contact": 1},
 }
 
 
@@ -53,9 +53,34 @@ def test_specs_and_keys(name, backend, num_envs):
         assert nxt[key].shape == (num_envs, 1) and nxt[key].dtype == torch.bool
     position = nxt["xy_position"] if name == "ant" else nxt["x_position"]
     assert torch.all(position[:, 0] != 0)
-    if name == "ant":  # x, y lead the observation; contact term is a cost, survive term 1 while healthy
-        torch.testing.assert_close(nxt["observation"][:, :2], nxt["xy_position"])
+    if name == "ant":  # contact term is a cost, survive term 1 while healthy; the centre of mass is near the torso
         assert torch.all(nxt["reward_contact"] <= 0) and torch.all(nxt["reward_survive"] == 1)
+        assert torch.all((nxt["xy_com"] - nxt["xy_position"]).abs() < 0.2)
+        assert not torch.equal(nxt["xy_com"], nxt["xy_position"])
+
+
+@pytest.mark.parametrize("backend", MUJOCO_BACKENDS)
+def test_ant_observation_excludes_the_xy_position(backend):
+    """Two copies in the same pose, one moved by (3, -2) on the floor: the same observation, positions 3, -2 apart."""
+    env = make_mujoco_env("ant", 2, seed=0, backend=backend)
+    td = env.reset()
+    rng = np.random.default_rng(0)
+    qpos = np.tile(BATCHED_ENVS["ant"](1)._init_qpos + rng.uniform(-0.1, 0.1, 15), (2, 1))
+    qvel = np.tile(0.1 * rng.standard_normal(14), (2, 1))
+    qpos[1, :2] += (3.0, -2.0)
+    for i in range(2):
+        if backend == "batched":
+            env.set_mj_state(qpos[i : i + 1], qvel[i : i + 1], env_ids=[i])
+        else:
+            env.base_env._env.envs[i].unwrapped.set_state(qpos[i], qvel[i])
+    for a in _actions(1, 8, 3):
+        td["action"] = a.expand(2, 8)
+        td = step_mdp(env.step(td))
+    assert td["observation"].shape == (2, 105)
+    torch.testing.assert_close(td["observation"][0], td["observation"][1], atol=1e-4, rtol=0)
+    shift = torch.tensor([3.0, -2.0])
+    for key in ("xy_position", "xy_com"):
+        torch.testing.assert_close(td[key][1] - td[key][0], shift, atol=1e-4, rtol=0)
 
 
 @pytest.mark.parametrize("backend", MUJOCO_BACKENDS)
@@ -103,7 +128,7 @@ def test_ant_unhealthy_copy_terminates_and_is_reset():
     td, td_next = env.step_and_maybe_reset(td)
     assert td["next", "terminated"].squeeze(-1).tolist() == [False, True]
     assert td["next", "reward_survive"].squeeze(-1).tolist() == [1.0, 0.0]
-    assert 0.2 <= td_next["observation"][1, 2] <= 1.0, "the terminated copy was reset"
+    assert 0.2 <= td_next["observation"][1, 0] <= 1.0, "the terminated copy was reset (dim 0: torso height)"
     torch.testing.assert_close(td_next["observation"][0], td["next", "observation"][0])
 
 

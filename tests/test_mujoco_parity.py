@@ -1,6 +1,9 @@
 """The batched MuJoCo backend reproduces gymnasium's v5 envs: trajectories, rewards, termination, reset noise."""
 
+import copy
+
 import gymnasium
+import mujoco
 import numpy as np
 import pytest
 import torch
@@ -19,11 +22,14 @@ def _gym_env(name: str):
     return gymnasium.make(spec.gym_id, **spec.gym_kwargs).unwrapped
 
 
-def _gym_physics(name: str, info: dict) -> dict[str, float | list[float]]:
+def _gym_physics(name: str, gym_env, info: dict) -> dict[str, float | list[float]]:
     if name == "half_cheetah":
         return {"x_position": [info["x_position"]], "x_velocity": [info["x_velocity"]]}
+    forwarded = copy.copy(gym_env.data)  # the MAML reference code's model.forward() after the step
+    mujoco.mj_forward(gym_env.model, forwarded)
     return {
         "xy_position": [info["x_position"], info["y_position"]],
+        "xy_com": forwarded.subtree_com[1, :2],
         "x_velocity": [info["x_velocity"]],
         "reward_survive": [info["reward_survive"]],
         "reward_contact": [info["reward_contact"]],
@@ -75,7 +81,7 @@ def test_trajectory_matches_gymnasium(name, z):
         np.testing.assert_array_equal(env._qstate[COPY], gym_env.state_vector())  # bit-exact float64 physics
         torch.testing.assert_close(nxt["observation"], _f32(obs), **TOL)
         torch.testing.assert_close(nxt["env_reward"], _f32([reward]), **TOL)
-        for key, value in _gym_physics(name, info).items():
+        for key, value in _gym_physics(name, gym_env, info).items():
             torch.testing.assert_close(nxt[key], _f32(value), **TOL, msg=key)
         assert nxt["terminated"].item() == term == nxt["done"].item()
         terminated.append(term)
@@ -118,7 +124,7 @@ def test_reset_noise_matches_gymnasium_in_distribution(name):
     n = 2000
     gym_env = _gym_env(name)
     gym_env.reset(seed=0)
-    nqv = gym_env.model.nq + gym_env.model.nv - (1 if name == "half_cheetah" else 0)
+    nqv = gym_env.model.nq + gym_env.model.nv - (1 if name == "half_cheetah" else 2)  # the x (x-y) excluded
     ref = np.stack([gym_env.reset()[0][:nqv] for _ in range(n)])
     env = make_mujoco_env(name, n // 8, seed=0, backend="batched")
     ours = torch.cat([env.reset()["observation"][:, :nqv] for _ in range(8)]).double().numpy()

@@ -62,7 +62,8 @@ def test_diayn_proposal_reads_the_discriminator_from_a_checkpoint(tiny_diayn_che
     torch.testing.assert_close(td["next", "reward"], _discriminator_reward(discriminator, td, 4))
     with pytest.raises(ValueError, match="exceeds"):
         make_proposal("diayn", "point_nav", num_tasks=5, diayn_checkpoint=checkpoint)
-    with pytest.raises(ValueError, match="trained on 2-D observations but half_cheetah has 17-D ones"):
+    with pytest.raises(ValueError, match=r"observation size: got 2 \(the discriminator of .*\); expected 17, the "
+                                         r"observation size of env 'half_cheetah'"):
         make_proposal("diayn", "half_cheetah", diayn_checkpoint=checkpoint)
 
 

@@ -22,7 +22,7 @@ PUBLIC = {
 #: umrl package: they sit beside the envs, below the transforms that hold them (VIMEBonus, DiscriminatorReward).
 LAYERS = {
     "runtime": 0, "validation": 0, "trajectories": 0, "profiling": 0, "launch": 0, "heap": 0, "absent_modules": 0,
-    "envs": 1, "modules": 1, "transforms": 2, "rollout": 4, "objectives": 5, "optim": 5,
+    "envs": 1, "modules": 1, "theory": 1, "transforms": 2, "rollout": 4, "objectives": 5, "optim": 5,
     "proposals": 6, "skill_coverage": 6, "reward_map": 6, "checkpoints": 6, "metatest": 7, "configs": 7,
 }
 
@@ -73,3 +73,11 @@ def test_every_module_imports_first_in_a_fresh_process():
     )
     result = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
+
+
+def test_version_comes_from_the_installed_metadata():
+    import importlib.metadata
+
+    import umrl
+
+    assert umrl.__version__ == importlib.metadata.version("umrl")

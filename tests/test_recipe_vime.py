@@ -7,6 +7,7 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.modules import ProbabilisticActor
 
 from recipes import compose
+from umrl.checkpoint_file import write_state
 from umrl.checkpoints import load_vime_checkpoint, load_vime_dynamics, load_vime_policy
 from umrl.runtime import load_replay_buffer_state
 
@@ -82,7 +83,7 @@ def test_resume_without_checkpoint_and_bad_config(tmp_path):
         recipe.train(tiny_config(tmp_path, "dynamics.holdout_fraction=0"))
     control = recipe.train(tiny_config(tmp_path / "control", "bonus.shuffle=true", "iterations=1"))
     assert control["bonus/intrinsic_return"] == pytest.approx(control["bonus/intrinsic_mean"] * 10, rel=1e-4)
-    torch.save({"format": "other"}, tmp_path / "step_1.pt")
+    write_state({"format": "other"}, tmp_path / "step_1.pt")
     with pytest.raises(ValueError, match="not a VIME checkpoint"):
         load_vime_policy(tmp_path / "step_1.pt")
 

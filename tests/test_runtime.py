@@ -1,4 +1,6 @@
 """Recipe runtime: checkpoints, loggers, seeding, NaN guard."""
+import os
+
 import pytest
 import torch
 
@@ -6,6 +8,7 @@ from umrl.runtime import (
     Checkpointer,
     CheckpointError,
     check_finite,
+    close_logger,
     log_metrics,
     make_logger,
     resolve_checkpoint,
@@ -65,7 +68,8 @@ def test_wandb_defaults_to_an_offline_run(tmp_path, monkeypatch):
     logger = make_logger({"backend": "wandb", "group": "g"}, exp_name="exp", config={"lr": 0.1})
     log_metrics(logger, {"train/x": 1.0}, step=0)
     assert logger.experiment.settings.mode == "offline" and logger.experiment.group == "g"
-    logger.experiment.finish()
+    assert "WANDB_MODE" not in os.environ  # the mode is this run's, not the process's (a later job may be online)
+    close_logger(logger)
     assert list((tmp_path / "wandb").glob("offline-run-*"))
 
 

@@ -11,10 +11,12 @@ import pytest
 from script_loading import compose_config, load_script
 
 import recipes
+from umrl.checkpoints import MAML_FORMAT
 from umrl.configs import ConfigError, validate
 from umrl.configs.suite import SuiteConfig
 from umrl.launch import RayLauncher, run_jobs
 from umrl.metatest import read_rows, write_rows
+from umrl.runtime import Checkpointer
 
 REPO = Path(__file__).resolve().parents[1]
 suite = load_script("benchmarks/suite.py")
@@ -163,8 +165,8 @@ def test_ray_launcher_runs_two_cells(tmp_path):
 
 def test_reuse_templates_point_the_plan_at_finished_runs(tmp_path):
     for proposal in ("random", "oracle"):
-        (tmp_path / "runs" / proposal / "point_nav" / "checkpoints").mkdir(parents=True)
-        (tmp_path / "runs" / proposal / "point_nav" / "checkpoints" / "step_5.pt").write_bytes(b"")
+        meta = {**dict.fromkeys(MAML_FORMAT.meta_keys, 1), "env": "point_nav", "proposal": proposal, "obs_dim": 2}
+        MAML_FORMAT.save(Checkpointer(tmp_path / "runs" / proposal / "point_nav" / "checkpoints"), 5, meta)
     template = f"{tmp_path}/runs/{{proposal}}/{{env}}"
     cfg = _cfg(tmp_path / "out", "seeds=[0]", "methods=[uml_random,oracle]", f"pretrain.maml.reuse='{template}'")
     runs = suite.plan_pretraining(cfg, "g", "code")

@@ -7,8 +7,7 @@ from umrl.envs import ENV_NAMES, make_task_env
 from umrl.envs.tasks import get_task_family
 
 
-@pytest.mark.parametrize("name, low, high, dim", [("point_nav", -0.5, 0.5, 2), ("half_cheetah", 0, 2, 1), ("ant", -3, 3, 2),
-                                                  ("ant_maml_reward", -3, 3, 2)])
+@pytest.mark.parametrize("name, low, high, dim", [("point_nav", -0.5, 0.5, 2), ("half_cheetah", 0, 2, 1), ("ant", -3, 3, 2)])
 def test_families_sample_in_their_bounds(name, low, high, dim):
     family = get_task_family(name)
     tasks = family.sample(2000, torch.Generator().manual_seed(0))
@@ -85,7 +84,7 @@ def test_wrong_task_shape_is_rejected(bad):
 def test_unknown_family_lists_choices():
     with pytest.raises(ValueError, match="valid choices"):
         get_task_family("humanoid")
-    assert set(ENV_NAMES) == {"point_nav", "half_cheetah", "ant", "ant_maml_reward"}
+    assert set(ENV_NAMES) == {"point_nav", "half_cheetah", "ant"}
 
 
 def test_non_finite_tasks_are_refused_with_their_position():

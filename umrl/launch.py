@@ -14,12 +14,25 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+import warnings
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["InlineLauncher", "Job", "JobError", "LocalLauncher", "RayLauncher", "failure_message", "log_tail",
-           "make_launcher", "run_jobs"]
+__all__ = [
+    "DirectoryLocked",
+    "InlineLauncher",
+    "Job",
+    "JobError",
+    "LocalLauncher",
+    "RayLauncher",
+    "directory_lock",
+    "failure_message",
+    "log_tail",
+    "make_launcher",
+    "run_jobs",
+]
 
 LOG_TAIL = 25
 """Lines of a failed job's log printed with its error."""
@@ -75,8 +88,14 @@ class InlineLauncher:
 
 
 _WORKER = """
-import os, pickle, sys, traceback
+import os, pickle, sys, threading, time, traceback
 tasks, results = os.fdopen(0, "rb"), os.fdopen(int(sys.argv[1]), "wb")
+driver = int(sys.argv[2])
+def watch_driver():  # a driver killed with SIGKILL cannot stop its workers: they stop themselves
+    while os.getppid() == driver:
+        time.sleep(%(poll)s)
+    os._exit(70)
+threading.Thread(target=watch_driver, daemon=True).start()
 while True:
     try:
         fn, args, kwargs, log = pickle.load(tasks)
@@ -93,7 +112,11 @@ while True:
     pickle.dump(result, results); results.flush()
 """
 """A worker process: read ``(fn, args, kwargs, log)`` pickles from stdin, run each with its output appended to
-``log``, write ``(ok, result or "Type: message")`` pickles to the result pipe; exit at EOF."""
+``log``, write ``(ok, result or "Type: message")`` pickles to the result pipe; exit at EOF, or (status 70) within
+:data:`DRIVER_POLL_S` of its driver's death (its parent pid changes), even in the middle of a job."""
+
+DRIVER_POLL_S = 1.0
+"""How often a local worker checks that the process that started it is alive."""
 
 
 class _Worker:
@@ -101,7 +124,8 @@ class _Worker:
 
     def __init__(self, cwd: Path, env: Mapping[str, str]):
         read, write = os.pipe()
-        self.process = subprocess.Popen([sys.executable, "-c", _WORKER, str(write)], cwd=cwd, env=dict(env),
+        self.process = subprocess.Popen([sys.executable, "-c", _WORKER % {"poll": DRIVER_POLL_S}, str(write),
+                                         str(os.getpid())], cwd=cwd, env=dict(env),
                                         stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                                         pass_fds=(write,))
         os.close(write)
@@ -200,6 +224,53 @@ class RayLauncher:
 
     def shutdown(self) -> None:  # the Ray instance belongs to whoever started it
         return None
+
+
+class DirectoryLocked(RuntimeError):
+    """Another live process holds the lock of the directory (its pid is in the message)."""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, another user's
+        return True
+    return True
+
+
+@contextmanager
+def directory_lock(directory: str | os.PathLike, name: str = "suite.lock") -> Iterator[Path]:
+    """Hold ``<directory>/<name>`` (holding this process's pid) while the block runs: two suites in one output_dir
+    would run the same jobs into the same files.
+
+    A lock held by a live process raises :class:`DirectoryLocked` naming its pid; one left by a dead process (a
+    driver killed with SIGKILL) is taken over with a warning. The lock is removed when the block ends."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    lock = directory / name
+    while True:
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            text = lock.read_text().strip() if lock.exists() else ""
+            pid = int(text) if text.isdigit() else None
+            if pid is not None and _alive(pid):
+                raise DirectoryLocked(f"output_dir: got {str(directory)!r}, in use by another suite (pid {pid}, lock "
+                                      f"{lock}); expected a directory no running suite uses (wait for pid {pid} to "
+                                      "finish or choose another output_dir)") from None
+            warnings.warn(f"taking over the stale lock {lock} of pid {pid}, which is no longer running", stacklevel=3)
+            lock.unlink(missing_ok=True)
+            continue
+        with os.fdopen(fd, "w") as f:
+            f.write(str(os.getpid()))
+        break
+    try:
+        yield lock
+    finally:
+        if lock.exists() and lock.read_text().strip() == str(os.getpid()):
+            lock.unlink()
 
 
 def make_launcher(launcher_cfg: Mapping, output_dir: str | os.PathLike = "."):

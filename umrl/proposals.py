@@ -21,9 +21,13 @@ Skills are pinned per env copy with :meth:`~umrl.transforms.skill.SkillTransform
 it must infer its task from rewards), so ``"skill"`` ``[B, K]`` appears in rollouts for inspection only.
 
 Example:
-    >>> proposal = make_proposal("oracle", "point_nav", num_tasks=20, trajectories_per_task=40, seed=0)
+    >>> from umrl.modules.policy import make_gaussian_policy
+    >>> from umrl.rollout import collect
+    >>> proposal = make_proposal("oracle", "point_nav", num_tasks=20, trajectories_per_task=4, seed=0, horizon=10)
     >>> tasks = proposal.resample(torch.Generator().manual_seed(0))   # [20, 2] goals
-    >>> batch = collect(proposal.env, policy, num_tasks=20, horizon=100)
+    >>> batch = collect(proposal.env, make_gaussian_policy(2, 2, hidden=[16]), num_tasks=20, horizon=10)
+    >>> batch.batch_size                                              # [tasks, trajectories, steps]
+    torch.Size([20, 4, 10])
 """
 from __future__ import annotations
 
@@ -34,9 +38,11 @@ import torch
 from torchrl.envs import TransformedEnv
 
 from umrl.envs import TaskReward, get_env_spec, make_env, make_task_env
+from umrl.envs.registry import check_observation_size
 from umrl.modules.discriminator import make_discriminator
 from umrl.transforms.discriminator_reward import DiscriminatorReward
 from umrl.transforms.skill import SkillTransform
+from umrl.validation import InvalidValue
 
 PROPOSALS = ("diayn", "random", "oracle", "random_arena")
 RANDOM_ARENA = 1.0
@@ -134,6 +140,8 @@ def make_proposal(
         raise ValueError(f"unknown proposal {name!r}; valid choices: {list(PROPOSALS)}.")
     if trajectories_per_task < 1 or (num_tasks is not None and num_tasks < 1):
         raise ValueError(f"need num_tasks >= 1 and trajectories_per_task >= 1, got {num_tasks} and {trajectories_per_task}.")
+    if num_skills is not None and (isinstance(num_skills, bool) or not isinstance(num_skills, int) or num_skills < 1):
+        raise InvalidValue("num_skills", num_skills, "null (the env's default) or an integer >= 1")
     n = trajectories_per_task
     spec = get_env_spec(env_name)
     if name == "random_arena" and arena is None:
@@ -151,11 +159,8 @@ def make_proposal(
         from umrl.checkpoints import load_discriminator
 
         discriminator, num_skills, trained_obs_dim = load_discriminator(diayn_checkpoint)
-        if trained_obs_dim != spec.obs_dim:  # the checkpoint's env observation, not D's input width (chosen dims)
-            raise ValueError(
-                f"the discriminator was trained on {trained_obs_dim}-D observations but {env_name} has "
-                f"{spec.obs_dim}-D ones: was the DIAYN checkpoint trained on another env?"
-            )
+        # the checkpoint's env observation, not D's input width (chosen dims)
+        check_observation_size(env_name, trained_obs_dim, f"the discriminator of {diayn_checkpoint}")
     else:
         num_skills = num_skills or spec.num_skills
         discriminator = make_discriminator(spec.obs_dim, num_skills, hidden=discriminator_hidden, seed=seed)

@@ -2,20 +2,20 @@
 
 Loggers are TorchRL's (:func:`torchrl.record.loggers.get_logger`): ``wandb`` in offline mode by default (runs land in
 ``<output_dir>/wandb/offline-run-*``; publish them later with ``wandb sync``), ``csv`` as a dependency-free
-alternative, ``none`` for tests. Checkpoints are ``torch.save`` files written atomically, with the resolved config
-beside them (their formats, saving and checked loading live in :mod:`umrl.checkpoints`); :func:`rng_state` /
-:func:`set_rng_state` and :func:`env_state` / :func:`load_env_state` capture what a faithful resume restores.
+alternative, ``none`` for tests. Checkpoints are :mod:`umrl.checkpoint_file` files (data only, hash-checked)
+written atomically, with the resolved config beside them (their formats, saving and checked loading live in
+:mod:`umrl.checkpoints`); :func:`rng_state` / :func:`set_rng_state` and :func:`env_state` / :func:`load_env_state` capture what a faithful resume restores.
 """
 from __future__ import annotations
 
 import math
 import os
-import pickle
 import random
 import re
 import warnings
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +26,13 @@ from torchrl.data import ReplayBuffer
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.record.loggers import Logger, get_logger
 
+from umrl.checkpoint_file import CheckpointError, read_state, write_state
+from umrl.validation import check_name
+
 LOGGER_BACKENDS = ("wandb", "csv", "none")
+
+_open_loggers: ContextVar[list[Logger] | None] = ContextVar("umrl_open_loggers", default=None)
+"""The loggers :func:`make_logger` made inside the innermost :func:`finishing_loggers` block."""
 
 
 def seed_everything(seed: int) -> torch.Generator:
@@ -120,7 +126,12 @@ def make_logger(logger_cfg: Mapping, *, exp_name: str, config: Any = None, log_d
     (wandb: ``offline`` by default, ``online`` to stream, ``disabled``; the ``WANDB_MODE`` environment variable wins).
     CSV logs go to ``<log_dir>/csv/<exp_name>/``; wandb runs to ``$WANDB_DIR/wandb`` if set, else
     ``<log_dir>/wandb`` (recipes pass their ``output_dir``: nothing lands in the current directory).
+
+    Every call starts a new wandb run, also while another one is open in this process (Hydra multirun, a Ray
+    worker running several jobs); :func:`close_logger` ends it, and inside a :func:`finishing_loggers` block that
+    happens when the block exits.
     """
+    check_name("logger.exp_name", exp_name)  # a folder under <log_dir>/csv, never a path out of it
     backend = logger_cfg.get("backend", "wandb")
     if backend not in LOGGER_BACKENDS:
         raise ValueError(f"unknown logger backend {backend!r}; valid choices: {list(LOGGER_BACKENDS)}.")
@@ -131,6 +142,7 @@ def make_logger(logger_cfg: Mapping, *, exp_name: str, config: Any = None, log_d
     else:
         mode = os.environ.get("WANDB_MODE", logger_cfg.get("mode", "offline"))
         Path(log_dir).mkdir(parents=True, exist_ok=True)
+        # the mode goes to wandb.init only: TorchRL's own offline=True also sets WANDB_MODE for the whole process
         logger = get_logger(
             "wandb",
             logger_name=os.environ.get("WANDB_DIR") or str(log_dir),
@@ -138,13 +150,65 @@ def make_logger(logger_cfg: Mapping, *, exp_name: str, config: Any = None, log_d
             wandb_kwargs={
                 "project": logger_cfg.get("project", "umrl"),
                 "group": logger_cfg.get("group"),
-                "offline": mode == "offline",
                 "mode": mode,
+                "reinit": "create_new",  # wandb's default hands back the open run: two jobs would share it
             },
         )
+    opened = _open_loggers.get()
+    if opened is not None:
+        opened.append(logger)
     if config is not None:
         logger.log_hparams(to_container(config))
     return logger
+
+
+def close_logger(logger: Logger | None) -> None:
+    """End ``logger``'s wandb run (its files are complete afterwards); nothing to do for CSV or ``None``."""
+    experiment = getattr(logger, "experiment", None)
+    if experiment is not None and hasattr(experiment, "finish"):
+        experiment.finish()
+
+
+@contextmanager
+def finishing_loggers() -> Iterator[None]:
+    """Close every logger :func:`make_logger` makes inside the block when it exits, by an error too: one wandb run
+    per job however jobs are launched. Also a decorator: the recipes' ``train`` functions are wrapped in it."""
+    opened: list[Logger] = []
+    token = _open_loggers.set(opened)
+    try:
+        yield
+    finally:
+        _open_loggers.reset(token)
+        for logger in opened:
+            close_logger(logger)
+
+
+def log_location(logger_cfg: Mapping, log_dir: str | os.PathLike = ".") -> str:
+    """Where :func:`make_logger` with these arguments writes, in words (for the end-of-run summary)."""
+    backend = logger_cfg.get("backend", "wandb")
+    if backend == "none":
+        return "not logged (logger.backend=none)"
+    if backend == "csv":
+        return f"{Path(log_dir) / 'csv'} (CSV)"
+    mode = os.environ.get("WANDB_MODE", logger_cfg.get("mode", "offline"))
+    return f"{Path(os.environ.get('WANDB_DIR') or log_dir) / 'wandb'} (wandb, {mode})"
+
+
+def run_summary(title: str, result: Mapping[str, Any], keys: Sequence[str], logs: str) -> str:
+    """A few lines for the end of a run: ``title``, the ``keys`` of ``result`` it has (4 significant digits), its
+    ``"checkpoint"`` and where every metric was logged (``logs``, e.g. :func:`log_location`'s).
+
+    >>> print(run_summary("maml finished", {"iteration": 5, "train/kl": 0.00612, "checkpoint": "out/step_5.pt"},
+    ...                   ["iteration", "train/kl", "train/absent"], "out/wandb (wandb, offline)"))
+    maml finished: iteration 5 | train/kl 0.00612
+    checkpoint: out/step_5.pt
+    every metric: out/wandb (wandb, offline)
+    """
+    values = [f"{k} {result[k]:.4g}" if isinstance(result[k], float) else f"{k} {result[k]}" for k in keys if k in result]
+    lines = [f"{title}: {' | '.join(values)}"]
+    if result.get("checkpoint"):
+        lines.append(f"checkpoint: {result['checkpoint']}")
+    return "\n".join([*lines, f"every metric: {logs}"])
 
 
 def log_metrics(logger: Logger | None, metrics: Mapping[str, float], step: int) -> None:
@@ -187,27 +251,12 @@ def check_finite(losses: Mapping[str, torch.Tensor], where: str) -> None:
         )
 
 
-class CheckpointError(ValueError):
-    """A checkpoint file that cannot be read (truncated, empty, not a ``torch.save`` file); names the file."""
-
-
-def read_checkpoint(path: str | os.PathLike, *, mmap: bool = False) -> Any:
-    """``torch.load`` of ``path`` on the CPU; a truncated, empty or foreign file raises :class:`CheckpointError`
-    naming it (instead of ``PytorchStreamReader failed`` / ``EOFError`` without a path). ``mmap=True`` maps the
-    tensors instead of reading them (loaders that keep a network and skip the replay buffers). An error raised by
-    the code unpickling it (a class that moved or changed) propagates as it is: the file is fine."""
-    path = Path(path)
-    try:
-        return torch.load(path, map_location="cpu", weights_only=False, mmap=mmap)
-    except (RuntimeError, EOFError, OSError, ValueError, pickle.UnpicklingError) as e:
-        if isinstance(e, FileNotFoundError):
-            raise
-        size = path.stat().st_size if path.is_file() else 0
-        raise CheckpointError(
-            f"cannot read checkpoint {path} ({size} bytes): {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
-            " -- the file is truncated, empty or not a torch.save file (a run killed while copying it?); delete it to "
-            "resume from the previous checkpoint."
-        ) from e
+def read_checkpoint(path: str | os.PathLike) -> Any:
+    """The state saved at ``path`` (:mod:`umrl.checkpoint_file`: tensors as data, hash checked; nothing is
+    unpickled), tensors on the CPU; a truncated, corrupted, empty or foreign file raises :class:`CheckpointError`
+    naming it, a torch.save pickle of older umrl versions its subclass
+    :class:`~umrl.checkpoint_file.LegacyCheckpointError` (``python -m umrl.checkpoints.convert`` a trusted one)."""
+    return read_state(path)
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:
@@ -262,7 +311,7 @@ class Checkpointer:
         self.directory.mkdir(parents=True, exist_ok=True)
         path = self.directory / f"step_{step}.pt"
         tmp = path.with_suffix(".pt.tmp")
-        torch.save(dict(state), tmp)
+        write_state(state, tmp)
         os.replace(tmp, path)
         if config is not None:
             write_text_atomic(self.directory / "config.yaml", OmegaConf.to_yaml(OmegaConf.create(to_container(config))))

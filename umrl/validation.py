@@ -140,6 +140,17 @@ def check_str(name: str, value: Any) -> str:
     return value
 
 
+def check_name(name: str, value: Any) -> str:
+    """``value`` if it is a file name (a run's or report's name), not a path: non-empty, without ``/``, ``\\`` or
+    NUL, and not ``.`` or ``..`` (such a name would write outside the folder it is meant for)."""
+    expected = "a name without path separators (not '.' or '..')"
+    if not isinstance(value, str):
+        raise InvalidType(name, value, expected)
+    if value in ("", ".", "..") or any(c in value for c in "/\\\0"):
+        raise InvalidValue(name, value, expected)
+    return value
+
+
 def check_choice(name: str, value: Any, choices: Collection) -> Any:
     """``value`` if it is one of ``choices``."""
     try:

@@ -9,7 +9,10 @@ VIME    recipes/vime.py     :func:`load_vime_checkpoint`, :func:`load_vime_polic
 ======  ==================  ==========================================================================
 
 Every loader accepts a ``step_*.pt`` file, a ``checkpoints/`` folder or a run's output_dir (the latest checkpoint),
-and raises ``ValueError`` for a file of another format (:class:`~umrl.checkpoints.format.CheckpointFormat`).
+and raises ``ValueError`` for a file of another format (:class:`~umrl.checkpoints.format.CheckpointFormat`). Files are
+:mod:`umrl.checkpoint_file`'s: tensors as data, a JSON tree and a content hash, so loading one runs no code and a
+changed byte is an error naming the file; the torch.save pickles of older umrl versions are refused and convert with
+``python -m umrl.checkpoints.convert OLD NEW`` (:mod:`umrl.checkpoints.convert`; trusted files only: it unpickles).
 :func:`export_diayn_skills` (``python -m umrl.checkpoints.export_skills SOURCE DESTINATION``) keeps a finished DIAYN
 run's skills without its replay buffer; the same loaders read the copy.
 """

@@ -1,6 +1,6 @@
 """DIAYN checkpoints, written by ``recipes/diayn.py`` (format ``"umrl.diayn.v1"``).
 
-A checkpoint is a ``torch.save``'d dict:
+A checkpoint is a dict (stored by :mod:`umrl.checkpoint_file`):
 
 - ``"format"``: ``"umrl.diayn.v1"``;
 - ``"meta"``: ``env`` (name), ``obs_dim``, ``act_dim``, ``num_skills``, ``hidden`` (actor/Q widths),

@@ -1,6 +1,6 @@
 """The one format/version check every checkpoint loader and every ``resume=true`` goes through.
 
-A umrl checkpoint is a ``torch.save``'d dict with ``"format"`` (a versioned name such as ``"umrl.maml.v1"``),
+A umrl checkpoint is a dict (stored by :mod:`umrl.checkpoint_file`: data only, hash-checked) with ``"format"`` (a versioned name such as ``"umrl.maml.v1"``),
 ``"meta"`` (what a loader needs to rebuild the networks) and format-specific entries. :class:`CheckpointFormat` names
 one format, the ``meta`` keys its loaders read, and does the saving (stamping ``"format"``) and the checked loading.
 """
@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from umrl.envs.registry import ENV_NAMES, check_observation_size
 from umrl.runtime import Checkpointer, read_checkpoint, resolve_checkpoint, to_container
 
 __all__ = ["CheckpointFormat"]
@@ -43,10 +44,14 @@ class CheckpointFormat:
         return checkpointer.save(state, step, config)
 
     def check(self, state: Any, source: str | os.PathLike) -> dict:
-        """Return ``state`` if it is a dict of this format, else raise ``ValueError`` naming ``source``."""
+        """Return ``state`` if it is a dict of this format whose networks fit their env's observation (where the env is
+        registered), else raise ``ValueError`` naming ``source``."""
         if not isinstance(state, dict) or state.get("format") != self.name:
             found = state.get("format") if isinstance(state, dict) else type(state).__name__
             raise ValueError(f"{source} is not a {self.what} checkpoint (format {found!r}, expected {self.name!r}).")
+        meta = state.get("meta") or {}
+        if meta.get("env") in ENV_NAMES:
+            check_observation_size(meta["env"], meta.get("obs_dim"), f"{self.what} checkpoint {source}")
         return state
 
     def load(self, path: str | os.PathLike) -> dict:
@@ -54,7 +59,7 @@ class CheckpointFormat:
         (the latest ``step_*.pt``); ``FileNotFoundError`` says what was looked for, ``CheckpointError`` names an
         unreadable file."""
         file = resolve_checkpoint(path)
-        return self.check(read_checkpoint(file, mmap=True), file)
+        return self.check(read_checkpoint(file), file)
 
     def load_for_resume(self, checkpointer: Checkpointer, meta: Mapping[str, Any],
                         check_config: Callable[[Any], None] | None = None) -> dict:

@@ -1,6 +1,6 @@
 """MAML checkpoints, written by ``recipes/maml.py`` (format ``"umrl.maml.v1"``).
 
-A checkpoint is a ``torch.save``'d dict:
+A checkpoint is a dict (stored by :mod:`umrl.checkpoint_file`):
 
 - ``"format"``: ``"umrl.maml.v1"``;
 - ``"meta"``: ``env``, ``proposal`` (diayn | random | oracle), ``obs_dim``, ``act_dim``, ``hidden``, ``init_std``

@@ -1,6 +1,6 @@
 """VIME checkpoints, written by ``recipes/vime.py`` (format ``"umrl.vime.v1"``).
 
-A ``torch.save``'d dict, files ``<output_dir>/checkpoints/step_<iteration>.pt`` (the final one of a run is the
+A dict (stored by :mod:`umrl.checkpoint_file`), files ``<output_dir>/checkpoints/step_<iteration>.pt`` (the final one of a run is the
 latest), with
 
 - ``"format"``: ``"umrl.vime.v1"``;

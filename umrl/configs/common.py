@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from umrl.configs.validate import boolean, choice, device, group, int_list, integer, number, string
+from umrl.configs.validate import boolean, choice, device, group, int_list, integer, name, number, string
 from umrl.envs import BACKENDS, ENV_NAMES
 from umrl.runtime import LOGGER_BACKENDS
 from umrl.validation import InvalidValue
@@ -42,7 +42,7 @@ class LoggerConfig:
 class RunLoggerConfig(LoggerConfig):
     """:class:`LoggerConfig` plus the run's ``exp_name``."""
 
-    exp_name: str = string()
+    exp_name: str = name()  # a folder name under <output_dir>/csv
 
 
 @dataclass

@@ -102,4 +102,18 @@ class DIAYNConfig(RunConfig):
         if batch > size:
             errors.append(InvalidValue("replay_buffer.batch_size", batch,
                                        f"an integer <= replay_buffer.size ({size})").message())
+        collector, per_frame = cfg["collector"], cfg["optim"]["updates_per_frame"]
+        warmup = max(collector["init_random_frames"], batch)  # the recipe's first update waits for both
+        if collector["init_random_frames"] >= collector["total_frames"]:
+            errors.append(InvalidValue("collector.init_random_frames", collector["init_random_frames"],
+                                       f"an integer < collector.total_frames ({collector['total_frames']})",
+                                       note="no update would run").message())
+        elif batch > collector["total_frames"]:
+            errors.append(InvalidValue("replay_buffer.batch_size", batch,
+                                       f"an integer <= collector.total_frames ({collector['total_frames']})",
+                                       note="no update would run").message())
+        elif (collector["total_frames"] - warmup + fpb) * per_frame < 1:  # the batch that fills the warm-up updates
+            errors.append(InvalidValue("optim.updates_per_frame", per_frame,
+                                       f"a rate giving at least one update in the {collector['total_frames']} frames "
+                                       f"after the {warmup}-frame warm-up", note="no update would run").message())
         return errors

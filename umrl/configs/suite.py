@@ -6,8 +6,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
+from string import Formatter
 from typing import Any
 
+from umrl.checkpoints import load_diayn_checkpoint, load_maml_checkpoint, load_vime_checkpoint
 from umrl.configs.common import LoggerConfig, cudagraphs_errors
 from umrl.configs.diayn import DIAYNConfig
 from umrl.configs.maml import MAMLConfig
@@ -20,6 +22,7 @@ from umrl.configs.validate import (
     int_list,
     integer,
     mapping,
+    name,
     number,
     number_list,
     string,
@@ -70,13 +73,21 @@ def check_pretrain_seeds(name: str, value: Any) -> int | list[int] | None:
     return check_list(name, value, partial(check_int, min=0), what="integers >= 0 (one per entry of seeds)")
 
 
+TEMPLATE_FIELDS = ("env", "seed", "proposal")
+"""The fields a ``reuse`` path template may hold, each plain (``{seed}``: no attribute, index, conversion or spec)."""
+
+
 def _check_template(name: str, value: Any) -> str:
     check_str(name, value)
+    expected = "a path template using only plain {env}, {seed} and {proposal} fields"
     try:
-        value.format(env="point_nav", seed=0, proposal="oracle")
-    except (KeyError, IndexError, ValueError) as e:
-        raise InvalidValue(name, value, "a path template using only {env}, {seed} and {proposal}",
-                           note=f"{type(e).__name__}: {e}") from None
+        fields = [(f, spec, conv) for _, f, spec, conv in Formatter().parse(value) if f is not None]
+    except ValueError as e:
+        raise InvalidValue(name, value, expected, note=f"ValueError: {e}") from None
+    bad = [f"{{{f}{'!' + conv if conv else ''}{':' + spec if spec else ''}}}" for f, spec, conv in fields
+           if f not in TEMPLATE_FIELDS or spec or conv]
+    if bad:
+        raise InvalidValue(name, value, expected, note=f"refused fields {bad}")
     return value
 
 
@@ -155,7 +166,7 @@ class ReportConfig:
 class SuiteConfig:
     """Every key of ``benchmarks/config/suite.yaml`` (after a profile); the yaml's comments say what each does."""
 
-    profile_name: str = string()
+    profile_name: str = name()  # a folder name under outputs/suite
     envs: list[str] = choice_list(ENV_NAMES, min_len=1)
     methods: list[str] = choice_list(METHODS, min_len=1)
     seeds: list[int] = int_list(min=0, min_len=1, unique=True)
@@ -176,17 +187,13 @@ class SuiteConfig:
 
     @staticmethod
     def cross_check(cfg: dict) -> list[str]:
-        """Report steps within K, ablation methods among ``methods``, overrides against the recipes' schemas (DIAYN's
+        """Ablation methods among ``methods``, overrides against the recipes' schemas (DIAYN's
         CUDA graphs against the suite's device) and every ``reuse`` run the suite would use present."""
         errors = []
         pseeds = cfg["pretrain_seeds"]
         if isinstance(pseeds, list) and len(pseeds) != len(cfg["seeds"]):
             errors.append(InvalidValue("pretrain_seeds", pseeds, f"null, an integer >= 0 or a list of "
                                        f"{len(cfg['seeds'])} integers >= 0 (one per seed in {cfg['seeds']})").message())
-        for i, step in enumerate(cfg["report"]["steps"]):
-            if step > cfg["protocol"]["num_steps"]:
-                errors.append(InvalidValue(f"report.steps[{i}]", step,
-                                           f"an integer <= protocol.num_steps ({cfg['protocol']['num_steps']})").message())
         if cfg["ablation"]["enabled"]:
             missing = [m for m in cfg["ablation"]["methods"] if m not in cfg["methods"]]
             if missing:
@@ -231,9 +238,18 @@ def reuse_dir(cfg: Mapping, run: Pretraining, env: str, seed: int) -> Path | Non
     return Path(str(template).format(env=env, seed=seed, proposal=run.proposal)).absolute() if template else None
 
 
+def _reuse_meta(run: Pretraining, run_dir: Path) -> dict:
+    """The ``meta`` of the newest checkpoint in ``run_dir``, read with ``run``'s recipe's loader (a checkpoint of
+    another recipe, a corrupted or an old pickle file raises ``ValueError`` naming it)."""
+    loader = {"diayn": load_diayn_checkpoint, "maml": load_maml_checkpoint, "vime": load_vime_checkpoint}[run.recipe]
+    return loader(run_dir)["meta"]
+
+
 def _reuse_errors(cfg: dict) -> list[str]:
-    """A ``reuse`` template the suite would use must point at runs holding a checkpoint for every (env, seed)."""
+    """A ``reuse`` template the suite would use must point at runs holding a checkpoint for every (env, seed), of
+    the method's recipe, env and (MAML) proposal; a reused UML-DIAYN run must have as many skills as the DIAYN run."""
     errors = []
+    skills: dict[tuple[str, str, int], int] = {}
     for run in needed_pretraining(cfg["methods"]):
         template, key = cfg["pretrain"][run.recipe]["reuse"], f"pretrain.{run.recipe}.reuse"
         if isinstance(template, Mapping):
@@ -241,8 +257,29 @@ def _reuse_errors(cfg: dict) -> list[str]:
         for env in cfg["envs"]:
             for seed in sorted(set(pretrain_seeds(cfg))):
                 run_dir = reuse_dir(cfg, run, env, seed)
-                if run_dir is not None and Checkpointer(run_dir / "checkpoints").latest() is None:
+                if run_dir is None:
+                    continue
+                if Checkpointer(run_dir / "checkpoints").latest() is None:
                     errors.append(InvalidValue(
                         key, template, "a finished run directory holding checkpoints/step_*.pt",
                         note=f"env={env} seed={seed}: {run_dir} has no checkpoint").message())
+                    continue
+                expected = {"env": env, **({"proposal": run.proposal} if run.proposal else {})}
+                try:
+                    meta = _reuse_meta(run, run_dir)
+                except ValueError as e:
+                    errors.append(InvalidValue(key, template, f"a {run.kind} run", note=str(e).splitlines()[0]).message())
+                    continue
+                found = {k: meta.get(k) for k in expected}
+                if found != expected:
+                    errors.append(InvalidValue(key, template, f"a {run.kind} run with {expected}",
+                                               note=f"env={env} seed={seed}: {run_dir} holds {found}").message())
+                elif run.kind in ("diayn", "maml_diayn"):
+                    skills[run.kind, env, seed] = meta.get("num_skills")
+    for (kind, env, seed), count in skills.items():
+        diayn = skills.get(("diayn", env, seed))
+        if kind == "maml_diayn" and diayn is not None and count != diayn:
+            errors.append(InvalidValue("pretrain.maml.reuse", cfg["pretrain"]["maml"]["reuse"],
+                                       f"a UML-DIAYN run on the reused DIAYN run's {diayn} skills",
+                                       note=f"env={env} seed={seed}: it meta-trained on {count} skills").message())
     return errors

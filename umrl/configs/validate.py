@@ -29,6 +29,7 @@ from umrl.validation import (
     check_int,
     check_list,
     check_mapping,
+    check_name,
     check_path_exists,
     check_str,
     resolve_device,
@@ -75,6 +76,11 @@ def boolean() -> Any:
 
 def string() -> Any:
     return checked(check_str)
+
+
+def name() -> Any:
+    """A file name, not a path (:func:`umrl.validation.check_name`)."""
+    return checked(check_name)
 
 
 def choice(choices: Collection) -> Any:

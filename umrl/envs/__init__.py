@@ -12,7 +12,7 @@ import inspect
 import torch
 from torchrl.envs import StepCounter, TransformedEnv
 
-from umrl.envs import builtin  # noqa: F401  (registers point_nav, half_cheetah, ant, ant_maml_reward)
+from umrl.envs import builtin  # noqa: F401  (registers point_nav, half_cheetah, ant)
 from umrl.envs.registry import ENV_NAMES, EnvSpec, get_env_spec, register_env, unregister_env
 from umrl.envs.task_reward import TaskReward
 from umrl.envs.tasks import TaskFamily, get_task_family

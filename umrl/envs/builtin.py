@@ -5,16 +5,14 @@ env             obs_dim  act_dim  skills  tasks                 coverage
 ==============  =======  =======  ======  ====================  ===========================================
 point_nav       2        2        50      goals U[-0.5, 0.5]²   final ``"position"``, 0.1 cells
 half_cheetah    17       6        20      speeds U[0, 2]        mean ``"x_velocity"``
-ant             107      8        20      goals U[-3, 3]²       final ``"xy_position"``, 0.25 cells
+ant             105      8        20      goals U[-3, 3]²       final ``"xy_position"``, 0.25 cells
 ==============  =======  =======  ======  ====================  ===========================================
 
-``ant_maml_reward`` (an ablation, not in PROTOCOL.md) is ``ant`` with the MAML reference code's goal reward
-(:data:`umrl.envs.tasks.ant_goal_reward_maml_code`): the same CMP, skills, tasks and evaluation goals, so DIAYN and
-UML runs of ``ant`` serve it unchanged (the suite's ``pretrain.<recipe>.reuse``).
+ant is gymnasium's ``Ant-v5`` (its model, dynamics and termination) with the MAML reference code's goal reward
+(:func:`umrl.envs.tasks.ant_goal_reward`) and gymnasium's default observation, x-y excluded as the paper states
+(105-D; the paper's 111 is ``Ant-v1``'s, see :class:`umrl.envs.mujoco_batched.AntBatchedEnv`).
 """
 from __future__ import annotations
-
-from dataclasses import replace
 
 import torch
 from torchrl.envs import EnvBase
@@ -24,7 +22,6 @@ from umrl.envs.registry import EnvSpec, register_env
 from umrl.envs.tasks import (
     TaskFamily,
     ant_goal_reward,
-    ant_goal_reward_maml_code,
     goal_distance_reward,
     goal_within,
     target_velocity_reward,
@@ -65,15 +62,11 @@ HALF_CHEETAH = register_env(EnvSpec(
     diayn_horizon=1000, diayn_frames=10_000_000, maml_iterations=475,
 ))
 ANT = register_env(EnvSpec(
-    name="ant", make=mujoco_maker("ant"), obs_dim=107, act_dim=8, num_skills=20,
+    name="ant", make=mujoco_maker("ant"), obs_dim=105, act_dim=8, num_skills=20,
     task_family=TaskFamily("ant", task_dim=2, low=-3.0, high=3.0, reward_fn=ant_goal_reward),
-    physics_keys={"xy_position": 2, "x_velocity": 1, "reward_survive": 1, "reward_contact": 1},
+    physics_keys={"xy_position": 2, "xy_com": 2, "x_velocity": 1, "reward_survive": 1, "reward_contact": 1},
     coverage_key="xy_position", coverage_cell=0.25,
     diayn_horizon=1000, diayn_frames=10_000_000, maml_iterations=375,
 ))
-ANT_MAML_REWARD = register_env(replace(
-    ANT, name="ant_maml_reward",
-    task_family=replace(ANT.task_family, env_name="ant_maml_reward", reward_fn=ant_goal_reward_maml_code),
-))
 
-__all__ = ["ANT", "ANT_MAML_REWARD", "HALF_CHEETAH", "POINT_NAV", "make_point_nav", "mujoco_maker"]
+__all__ = ["ANT", "HALF_CHEETAH", "POINT_NAV", "make_point_nav", "mujoco_maker"]

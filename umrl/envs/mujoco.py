@@ -1,4 +1,4 @@
-"""MuJoCo CMPs ``half_cheetah`` (``HalfCheetah-v5``) and ``ant`` (``Ant-v5``, x-y kept in the observation).
+"""MuJoCo CMPs ``half_cheetah`` (``HalfCheetah-v5``) and ``ant`` (``Ant-v5``), gymnasium's default observations.
 
 Two backends with identical keys, specs and (bit-for-bit) dynamics:
 
@@ -43,7 +43,8 @@ def make_mujoco_env(
     Returns:
         An ``EnvBase`` writing float32 ``"observation"``, zero ``("next", "reward")``, ``"env_reward"`` (gymnasium's
         reward), the physics keys (half_cheetah: ``"x_position"``, ``"x_velocity"``; ant: ``"xy_position"``,
-        ``"x_velocity"``, ``"reward_survive"``, ``"reward_contact"``) and ``"done"``/``"terminated"``/``"truncated"``.
+        ``"xy_com"``, ``"x_velocity"``, ``"reward_survive"``, ``"reward_contact"``) and
+        ``"done"``/``"terminated"``/``"truncated"``.
     """
     if name not in MODEL_SPECS:
         raise ValueError(f"unknown MuJoCo env {name!r}; valid choices: {list(MUJOCO_ENV_NAMES)}.")

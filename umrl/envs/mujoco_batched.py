@@ -64,10 +64,23 @@ class MujocoModelSpec:
 
 MODEL_SPECS: dict[str, MujocoModelSpec] = {
     "half_cheetah": MujocoModelSpec("HalfCheetah-v5", "half_cheetah.xml"),
-    "ant": MujocoModelSpec(
-        "Ant-v5", "ant.xml", gym_kwargs={"exclude_current_positions_from_observation": False}
-    ),
+    "ant": MujocoModelSpec("Ant-v5", "ant.xml"),
 }
+
+#: Ant's torso body: its subtree is the whole ant, so ``subtree_com[TORSO]`` is the ant's centre of mass.
+TORSO = 1
+
+
+def torso_com_xy(model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
+    """x-y of the centre of mass of the torso's subtree at ``data.qpos`` (a view into ``data.subtree_com``).
+
+    The MAML reference code's ``get_body_com("torso")`` (``com_subtree`` after ``model.forward()``, i.e. at the
+    post-step positions). Only position-dependent quantities are recomputed (``mj_kinematics``, ``mj_comPos``);
+    ``data``'s other fields, and the integration state, are left as they are.
+    """
+    mujoco.mj_kinematics(model, data)
+    mujoco.mj_comPos(model, data)
+    return data.subtree_com[TORSO, :2]
 
 
 def _state_slice(model: mujoco.MjModel, component: mujoco.mjtState) -> slice:
@@ -144,13 +157,16 @@ class BatchedMujocoEnv(EnvBase):
         self._qstate = self._state[:, qpos.start : qpos.start + m.nq + m.nv]  # view: qpos then qvel
         self._ctrl = self._sim.bind("ctrl")
         self._body_xy = np.zeros((num_envs, 2))  # gymnasium's data.body(1).xpos[:2]
+        self._com_xy = np.zeros((num_envs, 2))  # torso_com_xy after each step (the reference's centre of mass)
         self._cfrc_ext = np.zeros((num_envs, m.nbody, 6))
         self._xpos = self._sim.bind("xpos")  # refreshed by every batch call on a copy (resets, set_mj_state)
+        self._subtree_com = self._sim.bind("subtree_com")  # likewise
         self._workers, self._pool = [], None
         if self._reads_body_and_contacts:
             bounds = np.linspace(0, num_envs, num_threads + 1).astype(int)
-            # One worker per thread: its MjData and the (state, torso x-y, contact forces) rows of its copies.
-            rows = list(zip(self._state, self._body_xy, self._cfrc_ext))
+            # One worker per thread: its MjData and the (state, torso x-y, contact forces, centre-of-mass x-y) rows
+            # of its copies.
+            rows = list(zip(self._state, self._body_xy, self._cfrc_ext, self._com_xy))
             self._workers = [(mujoco.MjData(m), rows[lo:hi]) for lo, hi in itertools.pairwise(bounds)]
             self._pool = ThreadPoolExecutor(num_threads) if num_threads > 1 else None
         data = mujoco.MjData(m)
@@ -204,7 +220,7 @@ class BatchedMujocoEnv(EnvBase):
         """Step each copy of ``worker``: load its state, ``mj_step`` ``frame_skip`` times, store the state back."""
         (data, rows), model, nstep = worker, self.model, self._frame_skip
         xpos, cfrc_ext = data.xpos[1, :2], data.cfrc_ext
-        for state, body_xy, cfrc in rows:
+        for state, body_xy, cfrc, com_xy in rows:
             mujoco.mj_setState(model, data, state, _STATE)
             mujoco.mj_step(model, data, nstep)
             mujoco.mj_getState(model, data, state, _STATE)
@@ -212,6 +228,7 @@ class BatchedMujocoEnv(EnvBase):
             mujoco.mj_rnePostConstraint(model, data)
             body_xy[:] = xpos
             cfrc[:] = cfrc_ext
+            com_xy[:] = torso_com_xy(model, data)  # last: it overwrites data.xpos
 
     def _set_copies(self, ids: np.ndarray, qpos: np.ndarray, qvel: np.ndarray, *, reset: bool) -> None:
         """Gymnasium's ``set_state`` (after ``mj_resetData`` if ``reset``) for the sorted copies ``ids``.
@@ -225,6 +242,7 @@ class BatchedMujocoEnv(EnvBase):
         self._qstate[ids] = np.concatenate([qpos, qvel], axis=-1)
         self._sim.forward(ids)
         self._body_xy[ids] = self._xpos[ids, 1, :2]
+        self._com_xy[ids] = self._subtree_com[ids, TORSO, :2]
 
     def set_mj_state(self, qpos: np.ndarray, qvel: np.ndarray, env_ids=None) -> None:
         """Gymnasium's ``set_state`` for copies ``env_ids`` (default all): ``qpos`` ``[n, nq]``, ``qvel`` ``[n, nv]``."""
@@ -279,6 +297,8 @@ class BatchedMujocoEnv(EnvBase):
         out = {k: np.zeros((B, w)) for k, w in physics_keys(self.NAME).items()}
         position_key = "xy_position" if "xy_position" in out else "x_position"
         out[position_key] = self._qstate[:, : out[position_key].shape[1]]
+        if "xy_com" in out:
+            out["xy_com"] = self._com_xy.copy()
         return out
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -347,9 +367,13 @@ class HalfCheetahBatchedEnv(BatchedMujocoEnv):
 
 
 class AntBatchedEnv(BatchedMujocoEnv):
-    """``Ant-v5`` with ``exclude_current_positions_from_observation=False``: obs 107, act 8.
+    """``Ant-v5`` (default kwargs): obs 105, act 8.
 
-    Observation: qpos (15, x-y first), qvel (14), external contact forces of bodies 1.. clipped to [-1, 1] (78).
+    Observation: gymnasium's default, the one the paper states (the DIAYN code's Ant: x-y position excluded, contact
+    forces included): qpos without the torso's x-y (13), qvel (14), external contact forces of bodies 1..13 clipped
+    to [-1, 1] (78). The paper's 111 is gym's ``Ant-v1``, which also lists the world body's 6 contact-force entries
+    (always 0; v5 drops them). The x-y position is the physics key ``"xy_position"`` (coverage) and the centre of mass
+    ``"xy_com"`` (:func:`torso_com_xy`, the task reward's).
     ``env_reward = x_velocity + healthy - 0.5 |a|^2 - 5e-4 |clip(cfrc_ext)|^2``, where ``x_velocity`` is the torso
     body's x displacement over ``dt = 0.05`` as gymnasium measures it (``data.body(1).xpos``), ``healthy`` is 1 when
     the state is finite and the torso height ``qpos[2]`` lies in [0.2, 1.0]; unhealthy copies terminate.
@@ -369,7 +393,7 @@ class AntBatchedEnv(BatchedMujocoEnv):
 
     def _observe(self) -> np.ndarray:
         contact = self._contact_forces()[:, 1:].reshape(self.batch_size[0], -1)
-        return np.concatenate([self._qstate, contact], axis=-1)
+        return np.concatenate([self._qstate[:, 2:], contact], axis=-1)
 
     def _step_values(self, action, qpos_before, xy_before):
         x_velocity = (self._body_xy[:, 0] - xy_before[:, 0]) / self.dt
@@ -385,6 +409,7 @@ class AntBatchedEnv(BatchedMujocoEnv):
         env_reward = (x_velocity * self.FORWARD_REWARD_WEIGHT + healthy_reward) - (ctrl_cost + contact_cost)
         physics = {
             "xy_position": self._qstate[:, :2],
+            "xy_com": self._com_xy.copy(),
             "x_velocity": x_velocity,
             "reward_survive": healthy_reward,
             "reward_contact": -contact_cost,

@@ -1,13 +1,15 @@
 """Reference MuJoCo path: TorchRL's ``GymWrapper`` over a gymnasium *sync* vector env, with our keys.
 
 Same keys and specs as :mod:`umrl.envs.mujoco_batched` (float32 ``"observation"``, zero ``("next", "reward")``,
-``"env_reward"``, physics keys read from gymnasium's ``info``). Gymnasium's autoreset is disabled: TorchRL resets
-done copies itself through the ``"_reset"`` mask.
+``"env_reward"``, physics keys read from gymnasium's ``info``; Ant's centre of mass, which gymnasium does not report,
+is added to ``info`` by :class:`CentreOfMassInfo`). Gymnasium's autoreset is disabled: TorchRL resets done copies
+itself through the ``"_reset"`` mask.
 """
 
 from __future__ import annotations
 
 import gymnasium
+import mujoco
 import numpy as np
 import torch
 from tensordict import TensorDictBase
@@ -15,16 +17,39 @@ from torchrl.data import Composite, Unbounded
 from torchrl.envs import Compose, DoubleToFloat, GymWrapper, Transform, TransformedEnv
 from torchrl.envs.gym_like import BaseInfoDictReader
 
-from umrl.envs.mujoco_batched import MODEL_SPECS, physics_keys, physics_spec
+from umrl.envs.mujoco_batched import MODEL_SPECS, physics_keys, physics_spec, torso_com_xy
 
 # Physics key -> the gymnasium info keys stacked into it (missing keys, e.g. velocities at reset, read as 0).
 _INFO_SOURCES = {
     "x_position": ("x_position",),
     "xy_position": ("x_position", "y_position"),
+    "xy_com": ("com_x", "com_y"),
     "x_velocity": ("x_velocity",),
     "reward_survive": ("reward_survive",),
     "reward_contact": ("reward_contact",),
 }
+
+
+class CentreOfMassInfo(gymnasium.Wrapper):
+    """Adds ``"com_x"``, ``"com_y"`` to a MuJoCo env's reset and step ``info``: :func:`torso_com_xy` at its current
+    positions, computed on a scratch ``MjData`` so that the env's own data (and its next step) stay untouched."""
+
+    def __init__(self, env: gymnasium.Env):
+        super().__init__(env)
+        self._scratch = mujoco.MjData(env.unwrapped.model)
+
+    def _with_com(self, info: dict) -> dict:
+        self._scratch.qpos[:] = self.unwrapped.data.qpos
+        com_x, com_y = torso_com_xy(self.unwrapped.model, self._scratch)
+        return {**info, "com_x": float(com_x), "com_y": float(com_y)}
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        return obs, self._with_com(info)
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        return obs, reward, terminated, truncated, self._with_com(info)
 
 
 class PhysicsInfoReader(BaseInfoDictReader):
@@ -101,6 +126,7 @@ def make_gym_mujoco_env(name: str, num_envs: int, *, device: torch.device | str 
         num_envs=num_envs,
         vectorization_mode="sync",
         vector_kwargs={"autoreset_mode": gymnasium.vector.AutoresetMode.DISABLED},
+        wrappers=[CentreOfMassInfo] if "xy_com" in physics_keys(name) else None,
         **spec.gym_kwargs,
     )
     env = GymnasiumVectorEnv(vec_env, device=device)

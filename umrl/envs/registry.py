@@ -21,7 +21,8 @@ if TYPE_CHECKING:  # tasks.py reads the registry: the type alone avoids an impor
 
 COVERAGE_REDUCTIONS = ("last", "mean")
 
-__all__ = ["COVERAGE_REDUCTIONS", "ENV_NAMES", "EnvSpec", "get_env_spec", "register_env", "unregister_env"]
+__all__ = ["COVERAGE_REDUCTIONS", "ENV_NAMES", "EnvSpec", "check_observation_size", "get_env_spec", "register_env",
+           "unregister_env"]
 
 
 @dataclass(frozen=True)
@@ -117,6 +118,18 @@ def get_env_spec(name: str) -> EnvSpec:
         return _REGISTRY[name]
     except KeyError:
         raise ValueError(f"unknown env {name!r}; valid choices: {list(_REGISTRY)}.") from None
+
+
+def check_observation_size(env_name: str, obs_dim: int, source: str) -> None:
+    """Refuse networks built for ``obs_dim``-D observations (``source``: e.g. a checkpoint) on env ``env_name`` when
+    its observation has another size: a clear ``ValueError`` before any work, not a shape error inside a matmul."""
+    expected = get_env_spec(env_name).obs_dim
+    if obs_dim != expected:
+        raise ValueError(
+            f"observation size: got {obs_dim} ({source}); expected {expected}, the observation size of env "
+            f"{env_name!r}: they were trained on another observation (another env, or an earlier version of this one: "
+            f"ant's was 107-D before it excluded the x-y position); train them again."
+        )
 
 
 #: Names of the registered envs, in registration order: a live view of the registry (an env registered later is in

@@ -4,17 +4,16 @@ A task is a row vector of parameters (``task_dim`` floats); each env copy carrie
 env's record (:class:`umrl.envs.registry.EnvSpec`); :func:`get_task_family` reads it from there. Rewards follow
 PROTOCOL.md and are computed from the physics keys that every env writes into ``"next"``:
 
-================  ==========  ============================  ===========================================================
-env               task_dim    family                        reward
-================  ==========  ============================  ===========================================================
-point_nav         2 (goal)    U[-0.5, 0.5]²                 −‖s − g‖₂ (ends early when |dx| < 0.01 and |dy| < 0.01)
-half_cheetah      1 (speed)   U[0, 2]                       −|v_x − v| − 0.05‖a‖²
-ant               2 (goal)    U[-3, 3]²                     −‖xy − g‖₁ + healthy reward + contact reward − 0.5‖a‖²
-ant_maml_reward   2 (goal)    U[-3, 3]²                     −‖xy − g‖₁ + 4 + 0.05 healthy + contact reward − 0.005‖a‖²
-================  ==========  ============================  ===========================================================
+============  ==========  ==============  ============================================================================
+env           task_dim    family          reward
+============  ==========  ==============  ============================================================================
+point_nav     2 (goal)    U[-0.5, 0.5]²   −‖s − g‖₂ (ends early when |dx| < 0.01 and |dy| < 0.01)
+half_cheetah  1 (speed)   U[0, 2]         −|v_x − v| − 0.05‖a‖²
+ant           2 (goal)    U[-3, 3]²       −‖com_xy − g‖₁ + 4 + 0.05 − 0.005‖a‖² − 5e-4‖clip(cfrc_ext, −1, 1)‖²
+============  ==========  ==============  ============================================================================
 
-``ant_maml_reward`` is not in PROTOCOL.md: the same Ant-v5 CMP with the goal reward of the MAML reference code, an
-ablation of the protocol's ant reward (see :data:`ant_goal_reward_maml_code`).
+ant's reward is the MAML reference code's (:func:`ant_goal_reward`); its episodes end when the torso height leaves
+[0.2, 1.0] (the CMP's termination, Ant-v5's and the reference's).
 
 Actions enter the control costs clipped to the action bounds [-1, 1], i.e. as the simulator applied them.
 """
@@ -112,31 +111,30 @@ def target_velocity_reward(next_td: TensorDictBase, action: torch.Tensor, task: 
     return -(next_td["x_velocity"] - task).abs() - 0.05 * control_cost(action)
 
 
-@dataclass(frozen=True)
-class AntGoalReward:
-    """ant: ``-||xy - goal||_1 + offset + survive_weight * healthy + contact reward - ctrl_weight ||a||^2``.
+#: ant's per-step constants, from the MAML reference code (``rllab/envs/mujoco/ant_env_rand_goal.py``): the offset
+#: that keeps every step's reward positive near the goal ("make it happy, not suicidal"), the survive reward (paid on
+#: every step, the terminating one included) and the control-cost weight ``0.5 * 1e-2``.
+ANT_GOAL_OFFSET = 4.0
+ANT_SURVIVE_REWARD = 0.05
+ANT_CTRL_WEIGHT = 0.5 * 1e-2
 
-    ``healthy`` is the ``"reward_survive"`` key (Ant-v5's healthy reward: 1 while the torso height is in [0.2, 1.0],
-    0 on the step that ends the episode) and the contact reward is Ant-v5's (``-5e-4 ||clip(cfrc_ext, -1, 1)||^2``).
+
+def ant_goal_reward(next_td: TensorDictBase, action: torch.Tensor, task: torch.Tensor) -> torch.Tensor:
+    """ant: ``-||com_xy - goal||_1 + 4.0 + 0.05 - 0.005 ||a / scaling||^2 - 5e-4 ||clip(cfrc_ext, -1, 1)||^2``.
+
+    The MAML reference code's goal reward, term by term (PROTOCOL.md). ``com_xy`` is ``"xy_com"``, the ant's centre
+    of mass (its ``get_body_com("torso")``); the contact term is ``"reward_contact"`` (Ant-v5's contact cost: the
+    same weight ``0.5 * 1e-3`` on the same clipped forces).
+
+    ``a / scaling``: the reference's policy output ``u`` passes through rllab's ``normalize`` wrapper, which maps
+    ``[-1, 1]`` onto its ant.xml's ctrlrange ``[-150, 150]`` and clips, so the env receives ``a = clip(150 u, -150,
+    150)`` and ``scaling = (ub - lb) / 2 = 150``: ``a / scaling = clip(u, -1, 1)``. umrl's action is that ``u``
+    (the simulator clips it to Ant-v5's ctrlrange ``[-1, 1]``; with gear 150 the torque range is the reference's
+    ±150), so ``a / scaling`` is the clipped action (:func:`control_cost`).
     """
-
-    offset: float = 0.0
-    survive_weight: float = 1.0
-    ctrl_weight: float = 0.5
-
-    def __call__(self, next_td: TensorDictBase, action: torch.Tensor, task: torch.Tensor) -> torch.Tensor:
-        distance = (next_td["xy_position"] - task).abs().sum(-1, keepdim=True)
-        alive = self.offset + self.survive_weight * next_td["reward_survive"]
-        return -distance + alive + next_td["reward_contact"] - self.ctrl_weight * control_cost(action)
-
-
-#: PROTOCOL.md's ant reward: gymnasium Ant-v5's healthy reward and costs. Every step's reward is negative almost
-#: everywhere (about -2 standing still on the evaluation goals), so an episode that ends early scores higher.
-ant_goal_reward = AntGoalReward()
-#: The MAML reference code's ant goal reward (cbfinn/maml_rl ``rllab/envs/mujoco/ant_env_rand_goal.py``): +4 per
-#: step, survive reward 0.05, control cost 0.005 ||a||^2 (its ``0.5 * 1e-2``), the same contact cost; ending an
-#: episode early forfeits about +1 per remaining step. The ``ant_maml_reward`` env's family (an ablation).
-ant_goal_reward_maml_code = AntGoalReward(offset=4.0, survive_weight=0.05, ctrl_weight=0.005)
+    distance = (next_td["xy_com"] - task).abs().sum(-1, keepdim=True)
+    return (-distance + ANT_GOAL_OFFSET + ANT_SURVIVE_REWARD + next_td["reward_contact"]
+            - ANT_CTRL_WEIGHT * control_cost(action))
 
 
 def get_task_family(env_name: str) -> TaskFamily:

@@ -10,7 +10,10 @@ from __future__ import annotations
 
 import csv
 import io
+import json
+import math
 import os
+import warnings
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
@@ -91,25 +94,60 @@ def read_rows(paths: Iterable[str | os.PathLike]) -> list[dict]:
     """Rows of one or more CSV files, with ``seed``/``task``/``step`` as int and ``return``/``length`` as float.
 
     Files written before the ``lr_schedule`` column existed read as ``constant``; before ``length``, rows have none.
+    An empty file, a missing column, an unreadable number or a non-finite return raises ``ValueError`` naming the file.
     """
     rows = []
     for path in paths:
-        with Path(path).open(newline="") as f:
-            for row in csv.DictReader(f):
-                row.update(seed=int(row["seed"]), task=int(row["task"]), step=int(row["step"]),
-                           **{"return": float(row["return"])})
-                if row.get("length"):
-                    row["length"] = float(row["length"])
-                else:  # written before the column, or beside such rows (an empty field)
-                    row.pop("length", None)
-                row.setdefault("lr_schedule", "constant")
-                rows.append(row)
+        rows += _read_file(Path(path))
     return rows
+
+
+def _read_file(path: Path) -> list[dict]:
+    try:
+        with path.open(newline="") as f:
+            rows = list(csv.DictReader(f))
+        if not rows:
+            raise ValueError("no rows")
+        for row in rows:
+            row.update(seed=int(row["seed"]), task=int(row["task"]), step=int(row["step"]),
+                       **{"return": float(row["return"])})
+            if not math.isfinite(row["return"]):
+                raise ValueError(f"return {row['return']} at seed {row['seed']}, task {row['task']}, step {row['step']}")
+            if row.get("length"):
+                row["length"] = float(row["length"])
+            else:  # written before the column, or beside such rows (an empty field)
+                row.pop("length", None)
+            row.setdefault("lr_schedule", "constant")
+    except (KeyError, TypeError, ValueError, csv.Error, UnicodeDecodeError) as e:
+        what = f"no column {e}" if isinstance(e, KeyError) else f"{type(e).__name__}: {e}"
+        raise ValueError(f"cannot read results file {path}: {what}") from None
+    return rows
+
+
+def cell_finished(path: str | os.PathLike) -> bool:
+    """Whether the cell CSV ``path`` (and the ``.json`` beside it, where there is one) holds a finished result.
+
+    An empty or corrupt cached file is named in a ``UserWarning`` and removed with its ``.json`` (False: the cell
+    runs again) instead of giving a partial table or failing later."""
+    path = Path(path)
+    if not path.exists():
+        return False
+    try:
+        _read_file(path)
+        info = path.with_suffix(".json")
+        if info.exists() and not isinstance(json.loads(info.read_text()), dict):
+            raise ValueError(f"{info} does not hold a JSON object")
+    except (ValueError, UnicodeDecodeError) as e:
+        warnings.warn(f"recomputing the cell: {e}", UserWarning, stacklevel=2)
+        path.unlink()
+        path.with_suffix(".json").unlink(missing_ok=True)
+        return False
+    return True
 
 
 def run_matrix(rows: Iterable[Mapping], *, env: str, method: str, value: str = "return") -> np.ndarray:
     """``[runs, K + 1]`` returns (or another ``value`` column) of one (env, arm): one row per (seed, task), sorted;
-    ``method`` is an arm label."""
+    ``method`` is an arm label. A run missing steps or holding a non-finite value raises ``ValueError`` naming it."""
     table: dict[tuple[int, int], dict[int, float]] = {}
     for row in rows:
         if row["env"] == env and _label(row) == method:
@@ -117,6 +155,13 @@ def run_matrix(rows: Iterable[Mapping], *, env: str, method: str, value: str = "
     if not table:
         raise ValueError(f"no results for method {method!r} on env {env!r}.")
     steps = sorted(next(iter(table.values())))
+    for (seed, task), values in sorted(table.items()):
+        if sorted(values) != steps:
+            raise ValueError(f"{method!r} on {env!r}: seed {seed}, task {task} has steps {sorted(values)}, others "
+                             f"{steps} (a partial results file?)")
+        bad = {k: v for k, v in values.items() if not np.isfinite(v)}
+        if bad:
+            raise ValueError(f"{method!r} on {env!r}: seed {seed}, task {task} has non-finite {value} {bad}")
     return np.array([[table[run][k] for k in steps] for run in sorted(table)])
 
 

@@ -242,6 +242,7 @@ class DIAYNUpdate:
     output TensorDict, detached (``loss_*``, ``alpha``, ``entropy``, ``discriminator_accuracy``, ``pseudo_reward``).
 
     Examples:
+        >>> from tensordict import TensorDict
         >>> from umrl.modules.discriminator import make_discriminator
         >>> from umrl.modules.sac import make_skill_actor, make_skill_qvalue
         >>> K = 4

@@ -8,11 +8,22 @@ computation (``umrl.objectives.policy_gradient.compute_advantages``) live outsid
 
 Batches are ``[T, N, H]`` TensorDicts from :func:`umrl.rollout.collect` with ``"advantage"`` already written.
 
-Example:
+Example (point_nav's oracle goals as tasks):
+    >>> import torch
+    >>> from umrl.modules.policy import make_gaussian_policy
+    >>> from umrl.objectives.policy_gradient import compute_advantages
+    >>> from umrl.proposals import make_proposal
+    >>> from umrl.rollout import collect
+    >>> T, N, H = 2, 3, 5                                             # tasks, trajectories per task, horizon
+    >>> proposal = make_proposal("oracle", "point_nav", num_tasks=T, trajectories_per_task=N, horizon=H)
+    >>> goals = proposal.resample(torch.Generator().manual_seed(0))   # [T, 2]
+    >>> policy = make_gaussian_policy(2, 2, hidden=[16])
     >>> loss = MAMLLoss(policy, inner_lr=0.1)
-    >>> support = compute_advantages(collect(env, policy, num_tasks=T, horizon=H))
+    >>> support = compute_advantages(collect(proposal.env, policy, num_tasks=T, horizon=H))
     >>> adapted = loss.adapt(support)                                  # batch [T]
-    >>> query = compute_advantages(collect(env, policy, num_tasks=T, horizon=H, params=adapted))
+    >>> adapted.batch_size
+    torch.Size([2])
+    >>> query = compute_advantages(collect(proposal.env, policy, num_tasks=T, horizon=H, params=adapted.detach()))
     >>> out = loss(support, query)
     >>> out["loss_objective"].backward()                               # meta-gradient, through the inner step
 """

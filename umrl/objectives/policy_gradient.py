@@ -10,11 +10,22 @@ The baseline regresses the discounted return-to-go of the *finite-horizon* probl
 so the value after the horizon is zero by definition: a time-limit ``done`` is a true end here (no bootstrap),
 exactly like rllab's ``LinearFeatureBaseline`` + GAE that MAML-RL used.
 
-Example:
-    >>> td = collect(env, policy, num_tasks=T, horizon=H)          # [T, N, H]
+Example (point_nav's oracle goals as tasks):
+    >>> import torch
+    >>> from umrl.modules.policy import make_gaussian_policy
+    >>> from umrl.objectives.policy_gradient import compute_advantages
+    >>> from umrl.proposals import make_proposal
+    >>> from umrl.rollout import collect
+    >>> T, N, H = 2, 3, 5                                             # tasks, trajectories per task, horizon
+    >>> proposal = make_proposal("oracle", "point_nav", num_tasks=T, trajectories_per_task=N, horizon=H)
+    >>> goals = proposal.resample(torch.Generator().manual_seed(0))   # [T, 2]
+    >>> policy = make_gaussian_policy(2, 2, hidden=[16])
+    >>> td = collect(proposal.env, policy, num_tasks=T, horizon=H)  # [T, N, H]
     >>> td = compute_advantages(td, gamma=0.99, lmbda=1.0)        # adds "state_value", "value_target", "advantage"
     >>> log_prob = policy.get_dist(td).log_prob(td["action"])     # [T, N, H]
     >>> loss = vpg_loss(log_prob, td)                             # [T]: one loss per task
+    >>> loss.shape
+    torch.Size([2])
 """
 from __future__ import annotations
 

@@ -12,12 +12,19 @@ policy updates. It is agnostic to what the surrogate is: it only needs
   KL on a subsample of the batch. Defaults to the ``kl`` returned by ``closure``. Or ``hvp() -> (v -> H v)``: a
   ready-made Hessian-vector product (MAML's Gauss-Newton form avoids third-order derivatives).
 
-Example:
+Example (a linear Gaussian policy's mean pulled towards targets, unit variance):
+    >>> from tensordict import TensorDict
+    >>> _ = torch.manual_seed(0)
     >>> policy = torch.nn.Linear(3, 2)
-    >>> params = TensorDict.from_module(policy)
-    >>> trpo = TRPOStep(params, max_kl=0.01)
-    >>> info = trpo(lambda: (surrogate(policy), kl(policy)))  # doctest: +SKIP
-    >>> info["accepted"], info["kl"], info["improvement"]  # doctest: +SKIP
+    >>> x, target = torch.randn(64, 3), torch.randn(64, 2)
+    >>> old_mean = policy(x).detach()
+    >>> def closure():  # (loss to minimise, mean KL(N(old_mean, I) || N(mean, I)))
+    ...     mean = policy(x)
+    ...     return ((mean - target) ** 2).mean(), 0.5 * ((mean - old_mean) ** 2).sum(-1).mean()
+    >>> trpo = TRPOStep(TensorDict.from_module(policy), max_kl=0.01)
+    >>> info = trpo(closure)
+    >>> info["accepted"] == 1.0, info["kl"] <= 0.01, info["improvement"] > 0
+    (True, True, True)
 
 The conjugate-gradient system is ``(H + damping * I) x = g`` with ``H`` the KL Hessian at the current parameters
 (exact when ``kl`` is taken through MAML's inner update, since the KL's gradient vanishes there). The full step is
@@ -29,6 +36,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections.abc import Callable
 
 import torch
@@ -101,7 +109,8 @@ class TRPOStep:
     Calling the step returns a dict of floats: ``surrogate_before``, ``surrogate_after``, ``improvement``
     (before − after, positive is better), ``kl`` (measured at the accepted point, 0 if rejected), ``accepted``
     (1.0/0.0), ``backtracks`` (trials evaluated), of them ``rejected_surrogate`` (no improvement) and ``rejected_kl``
-    (KL over ``max_kl``; a trial can fail both), ``step_norm``, ``grad_norm``, and wall-clock seconds
+    (KL over ``max_kl`` or not finite; a trial can fail both), of those ``nonfinite_kl`` (a NaN/inf KL: a step
+    rejected for it also warns, ``RuntimeWarning``), ``step_norm``, ``grad_norm``, and wall-clock seconds
     ``direction_s`` (gradient, Hessian-vector product set-up and ``cg_iters`` conjugate-gradient products), of it
     ``cg_s`` (the conjugate-gradient products alone), and ``line_search_s`` (the trials). They end at a ``.item()``
     the step makes anyway, so on CUDA they include the queued work; ``cg_s`` starts after one synchronisation (a
@@ -213,6 +222,7 @@ class TRPOStep:
             "backtracks": 0.0,
             "rejected_surrogate": 0.0,
             "rejected_kl": 0.0,
+            "nonfinite_kl": 0.0,
             "step_norm": 0.0,
             "direction_s": line_search_start - direction_start,
             "cg_s": line_search_start - cg_start,
@@ -232,6 +242,7 @@ class TRPOStep:
             too_far = not new_kl <= self.max_kl  # a NaN KL too
             info["rejected_surrogate"] += worse
             info["rejected_kl"] += too_far
+            info["nonfinite_kl"] += not math.isfinite(new_kl)
             if not (worse or too_far):
                 info.update(
                     surrogate_after=new_loss,
@@ -244,4 +255,8 @@ class TRPOStep:
                 return info
         self._set(saved, None)
         info["line_search_s"] = time.perf_counter() - line_search_start
+        if info["nonfinite_kl"]:
+            warnings.warn(f"TRPO step rejected: the KL was not finite at {info['nonfinite_kl']:.0f} of "
+                          f"{info['backtracks']:.0f} line-search trials (NaN/inf policy outputs?); the parameters are "
+                          "unchanged.", RuntimeWarning, stacklevel=2)
         return info

@@ -1,0 +1,79 @@
+"""Read offline wandb runs (``offline-run-*/run-*.wandb``) for tests: the records wandb-core wrote, parsed with
+wandb's own protobuf classes.
+
+A ``.wandb`` file is a 7-byte header (``:W&B``, magic, version) then LevelDB-log style chunks in 32 KiB blocks:
+4-byte checksum, 2-byte little-endian length, 1-byte type (full, first, middle, last), payload; a block's tail
+shorter than a chunk header is zero padding."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from wandb.proto.wandb_internal_pb2 import Record
+
+_BLOCK, _HEADER, _CHUNK = 32 * 1024, 7, 7
+_FULL, _LAST = 1, 4
+
+
+def records(path: str | Path) -> list[Record]:
+    data = Path(path).read_bytes()
+    if data[:4] != b":W&B":
+        raise ValueError(f"{path}: not a .wandb file (header {data[:4]!r})")
+    out, parts, pos = [], [], _HEADER
+    while pos + _CHUNK <= len(data):
+        left = _BLOCK - pos % _BLOCK
+        if left < _CHUNK:
+            pos += left
+            continue
+        length, kind = int.from_bytes(data[pos + 4:pos + 6], "little"), data[pos + 6]
+        if kind == 0:  # zero padding to the end of the block
+            pos += left
+            continue
+        parts.append(data[pos + _CHUNK:pos + _CHUNK + length])
+        pos += _CHUNK + length
+        if kind in (_FULL, _LAST):
+            out.append(Record.FromString(b"".join(parts)))
+            parts = []
+    return out
+
+
+@dataclass
+class OfflineRun:
+    """What one offline run holds: its name, config keys and values (JSON text), each logged metric's values, and
+    whether it was finished (its exit record is written)."""
+
+    path: Path
+    name: str = ""
+    finished: bool = False
+    config: dict[str, str] = field(default_factory=dict)
+    metrics: dict[str, list[str]] = field(default_factory=dict)
+
+    @property
+    def num_values(self) -> int:
+        return sum(len(v) for v in self.metrics.values())
+
+
+def read_run(run_dir: str | Path) -> OfflineRun:
+    """The :class:`OfflineRun` of an ``offline-run-*`` directory."""
+    (file,) = Path(run_dir).glob("run-*.wandb")
+    run = OfflineRun(Path(run_dir))
+    for record in records(file):
+        kind = record.WhichOneof("record_type")
+        if kind == "run":
+            run.name = record.run.display_name
+            run.config.update({item.key: item.value_json for item in record.run.config.update})
+        elif kind == "config":
+            run.config.update({item.key: item.value_json for item in record.config.update})
+        elif kind == "exit":
+            run.finished = True
+        elif kind == "history":
+            for item in record.history.item:
+                key = item.key or "/".join(item.nested_key)
+                if not key.startswith("_"):
+                    run.metrics.setdefault(key, []).append(item.value_json)
+    return run
+
+
+def offline_runs(directory: str | Path) -> list[OfflineRun]:
+    """Every offline run under ``directory`` (searched recursively), oldest first."""
+    return [read_run(p) for p in sorted(Path(directory).rglob("offline-run-*")) if p.is_dir()]
