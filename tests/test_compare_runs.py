@@ -26,16 +26,16 @@ def _table(printed):
 
 @pytest.fixture
 def two_runs(tmp_path):
-    """Run ``short`` (K = 4, ``uml_random`` with the reference schedule, and scratch) and run ``long`` (K = 8, two
-    seeds, the second's returns twice the first's)."""
+    """Run ``short`` (K = 4, ``uml_random`` with the constant schedule, an arm suffixed by it, and scratch) and run
+    ``long`` (K = 8, two seeds, the second's returns twice the first's)."""
     k4, k8 = np.arange(5.0)[:, None], np.arange(9.0)[:, None]
     tasks = np.arange(4.0)[None, :]
     short = to_rows(-(10.0 - k4) * (1 + tasks), np.full((5, 4), 100.0), method="uml_random", env="point_nav", seed=0,
-                    lr_schedule="reference")
+                    lr_schedule="constant")
     short += to_rows(-np.ones((5, 4)), np.full((5, 4), 100.0), method="scratch", env="point_nav", seed=0)
     long = [row for seed in (0, 1) for row in to_rows(-(10.0 - k8) * (1 + tasks) * (1 + seed), np.full((9, 4), 100.0),
                                                       method="uml_random", env="point_nav", seed=seed,
-                                                      lr_schedule="reference")]
+                                                      lr_schedule="constant")]
     write_rows(short, tmp_path / "short" / "results.csv")
     write_rows(long, tmp_path / "long.csv")
     return tmp_path
@@ -44,13 +44,13 @@ def two_runs(tmp_path):
 def test_prints_iqm_auc_per_horizon_and_draws_a_panel_per_horizon(two_runs, monkeypatch, capsys):
     out = two_runs / "curves.png"
     printed = _cli(monkeypatch, capsys, "--horizons", "4", "8", "--steps", "0", "6", "--out", str(out),
-                   "--run", f"short=uml_random (reference)@{two_runs / 'short'}",
-                   "--run", f"long=uml_random (reference)@{two_runs / 'long.csv'}",
+                   "--run", f"short=uml_random (constant)@{two_runs / 'short'}",
+                   "--run", f"long=uml_random (constant)@{two_runs / 'long.csv'}",
                    "--run", f"scratch=scratch@{two_runs / 'short' / 'results.csv'}")
     rows = _table(printed)
     # task t's curve is -(10 - k)(1 + t): AUC over k = 0..4 is -(1 + t) * 32, over k = 0..8 -(1 + t) * 48; the IQM of
     # four tasks averages the middle two (t = 1, 2)
-    assert rows["short"] == ["short", "uml_random (reference)", "4", "-25.0", "—", rows["short"][5], "—"]
+    assert rows["short"] == ["short", "uml_random (constant)", "4", "-25.0", "—", rows["short"][5], "—"]
     assert rows["short"][5].startswith("-80.0 [")
     # long's 8 runs (2 seeds x 4 tasks): the IQM averages the middle four values
     assert rows["long"][2:5] == ["8", "-32.5", "-13.0"]
@@ -65,7 +65,7 @@ def test_prints_iqm_auc_per_horizon_and_draws_a_panel_per_horizon(two_runs, monk
 @pytest.mark.parametrize("spec, message", [
     ("no-separators", "expected LABEL=ARM@PATH"),
     ("x=scratch@/nowhere/results.csv", "neither a results.csv nor a folder"),
-    ("x=uml_diayn@{dir}/long.csv", "no arm 'uml_diayn' on env 'point_nav'; it has 'uml_random \\(reference\\)'"),
+    ("x=uml_diayn@{dir}/long.csv", "no arm 'uml_diayn' on env 'point_nav'; it has 'uml_random \\(constant\\)'"),
 ])
 def test_bad_run_specs_are_refused_with_what_is_accepted(two_runs, monkeypatch, capsys, spec, message):
     with pytest.raises(SystemExit, match=message):

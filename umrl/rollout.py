@@ -38,8 +38,10 @@ from torchrl.modules import ProbabilisticActor
 from umrl.envs.threads import torch_threads_beside_physics
 from umrl.modules.batched_mlp import BatchedGaussianMLP
 from umrl.trajectories import trajectory_mask
+from umrl.validation import check_int
 
-__all__ = ["FunctionalPolicy", "check_cudagraphs", "collect", "fixed_horizon_steps"]
+__all__ = ["FunctionalPolicy", "check_cudagraphs", "collect", "collect_env_steps", "first_env_steps",
+           "fixed_horizon_steps"]
 
 
 class FunctionalPolicy:
@@ -170,6 +172,54 @@ def collect(
     rollout = rollout.view(num_tasks, per_task, horizon)
     rollout.set("mask", trajectory_mask(rollout["next", "done"]))
     return rollout
+
+
+def collect_env_steps(
+    env: EnvBase,
+    policy: ProbabilisticActor,
+    *,
+    num_tasks: int,
+    horizon: int,
+    env_steps: int,
+    params: TensorDictBase | None = None,
+) -> TensorDictBase:
+    """Each task's first episodes up to ``env_steps`` env steps, the last one whole: a ``[T, M, H]`` batch.
+
+    The sampler of the MAML reference code (rllab's ``sample_paths(max_samples=batch_size)``, cbfinn/maml_rl): paths
+    are rolled out until their steps reach the budget, so where episodes end early (point_nav at its goal) a batch
+    holds more of them than ``env_steps / horizon``. Here :func:`collect` runs rounds of ``N`` episodes per task
+    (``N`` = the env copies per task) until every task has ``env_steps``; :func:`first_env_steps` then keeps each
+    task's episodes in order, as one sequential sampler would collect them (the reference with ``n_parallel = 1``;
+    its parallel workers may finish a few more paths already under way). Every round adds ``N`` steps at least, so
+    at most ``ceil(env_steps / N)`` rounds run.
+
+    Keyword Args:
+        num_tasks, horizon, params: as :func:`collect`.
+        env_steps: the per-task budget (>= 1).
+
+    Returns:
+        TensorDict ``[T, M, H]`` as :func:`collect` returns; the ``"mask"`` of episodes past a task's budget is all
+        False (``M`` is the largest number of episodes a task keeps).
+    """
+    check_int("env_steps", env_steps, min=1)
+    rounds, steps = [], 0
+    while True:
+        rounds.append(collect(env, policy, num_tasks=num_tasks, horizon=horizon, params=params))
+        steps = steps + rounds[-1]["mask"].sum((-2, -1))
+        if bool((steps >= env_steps).all()):
+            return first_env_steps(torch.cat(rounds, 1), env_steps)
+
+
+def first_env_steps(batch: TensorDictBase, env_steps: int) -> TensorDictBase:
+    """Keep each task's first episodes of ``batch`` ``[T, M, H]`` (in trajectory order) until they reach
+    ``env_steps`` env steps, the last one whole: later episodes' ``"mask"`` is cleared and trailing trajectories
+    that no task keeps are dropped. Episode ``m`` is kept when the episodes before it hold fewer than ``env_steps``
+    steps."""
+    mask = batch["mask"]
+    lengths = mask.sum(-1)  # [T, M]
+    keep = lengths.cumsum(-1) - lengths < env_steps
+    batch.set("mask", mask & keep.unsqueeze(-1))
+    return batch[:, : int(keep.sum(-1).max())]
 
 
 def fixed_horizon_steps(env: EnvBase, act, td: TensorDictBase, horizon: int) -> TensorDictBase:

@@ -102,6 +102,7 @@ class ProtocolConfig:
     lmbda: float = number(ge=0, le=1)
     normalize_advantage: bool = boolean()
     sgd_schedule: Any = checked(check_sgd_schedule)
+    env_steps: int | None = integer(min=1)
 
 
 @dataclass

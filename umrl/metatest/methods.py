@@ -32,7 +32,7 @@ from umrl.metatest.protocol import (
 )
 from umrl.metatest.results import to_rows, write_rows
 from umrl.modules.policy import make_gaussian_policy
-from umrl.objectives.policy_gradient import episode_lengths
+from umrl.objectives.policy_gradient import episode_lengths, episode_mean
 from umrl.proposals import PROPOSALS
 from umrl.runtime import seed_everything
 from umrl.validation import (
@@ -336,7 +336,7 @@ def run_cell(spec: CellSpec) -> str:
     lengths = []  # [K + 1] x [T]: mean episode length per task at each step, beside the returns
 
     def record_lengths(step: int, batch: TensorDictBase) -> None:
-        lengths.append(episode_lengths(batch).float().mean(-1).cpu())
+        lengths.append(episode_mean(episode_lengths(batch).float(), batch).cpu())
 
     returns, extra_info = meta_test(init, spec.env, tasks, lr=lr, seed=spec.seed, config=config,
                                     skill_trajectories=spec.skill_trajectories, device=device,

@@ -4,7 +4,9 @@ For a policy initialisation and a set of held-out tasks ``[T, task_dim]``:
 
 1. every task gets its own copy of the policy parameters (a TensorDict with a leading task dim ``[T]``);
 2. at each adaptation step ``k = 0 … K`` the env batch ``T × N`` (``N`` trajectories per task, task-major) is rolled
-   out for ``H`` steps with each task's parameters, and the mean undiscounted return per task is recorded;
+   out for ``H`` steps with each task's parameters, and the mean undiscounted return per task is recorded (with
+   ``AdaptationConfig.env_steps`` set, each task's batch is instead its first episodes up to that many env steps,
+   as the MAML reference code samples: :func:`umrl.rollout.collect_env_steps`);
 3. unless ``k = K``, one policy-gradient update is taken on that fresh batch: the per-task VPG losses of
    :mod:`umrl.objectives.policy_gradient` (linear feature baseline, GAE) are summed and differentiated w.r.t. the
    stacked parameters, so row ``t`` of the gradient is task ``t``'s gradient. ``optimizer="sgd"`` is vanilla PG at
@@ -36,8 +38,8 @@ from torchrl.envs import TransformedEnv
 from umrl.envs import make_task_env
 from umrl.envs.tasks import get_task_family
 from umrl.metatest.stats import auc
-from umrl.objectives.policy_gradient import compute_advantages, episode_returns, vpg_loss
-from umrl.rollout import FunctionalPolicy, collect
+from umrl.objectives.policy_gradient import compute_advantages, episode_mean, episode_returns, vpg_loss
+from umrl.rollout import FunctionalPolicy, collect, collect_env_steps
 from umrl.runtime import check_finite
 from umrl.transforms.skill import SkillTransform
 from umrl.validation import check_choice, check_int, check_positive
@@ -78,6 +80,11 @@ class AdaptationConfig:
             ``"swept"`` (:func:`sgd_lr_factor`); applies to ``optimizer="sgd"``.
         sgd_later_factor: ``"swept"``'s factor of ``α`` after the first update (> 0); a suite cell replaces it with
             the best of ``sweep.later_factors`` on the sweep tasks. Ignored by the other schedules.
+        env_steps: ``None`` (PROTOCOL.md): every batch is ``num_trajectories`` trajectories per task. An integer
+            ``S`` >= 1: every batch is each task's first episodes up to ``S`` env steps, the last one whole, rolled out
+            ``num_trajectories`` at a time (:func:`umrl.rollout.collect_env_steps`), and the recorded return is the
+            mean over those episodes: the MAML reference code's test-time sampler (``test_maml_point.py``:
+            ``batch_size=4000``, i.e. ``S = 4000``). Where episodes end early, a batch then holds more of them.
     """
 
     num_steps: int = 10
@@ -88,6 +95,7 @@ class AdaptationConfig:
     normalize_advantage: bool = True
     sgd_schedule: str = DEFAULT_SGD_SCHEDULE
     sgd_later_factor: float = 0.5
+    env_steps: int | None = None
 
     def __post_init__(self):
         check_int("protocol.num_steps", self.num_steps, min=0)
@@ -95,6 +103,8 @@ class AdaptationConfig:
         check_int("protocol.horizon", self.horizon, min=1)
         check_choice("protocol.sgd_schedule", self.sgd_schedule, SGD_SCHEDULES)
         check_positive("protocol.sgd_later_factor", self.sgd_later_factor)
+        if self.env_steps is not None:
+            check_int("protocol.env_steps", self.env_steps, min=1)
 
 
 def make_eval_env(env_name: str, tasks: torch.Tensor, num_trajectories: int, *, seed: int, horizon: int,
@@ -163,10 +173,13 @@ class TaskAdapter:
                                                                lambda k: sgd_lr_factor(schedule, k, later))
 
     def collect(self) -> TensorDictBase:
-        """Roll out ``N`` trajectories per task with each task's current parameters: a ``[T, N, H]`` TensorDict."""
+        """Roll out ``N`` trajectories per task with each task's current parameters: a ``[T, N, H]`` TensorDict
+        (with ``config.env_steps``, each task's first episodes up to that many steps: ``[T, M, H]``)."""
+        rollout = {"num_tasks": self.num_tasks, "horizon": self.config.horizon, "params": self.params.detach()}
         with torch.no_grad():
-            return collect(self.env, self.policy, num_tasks=self.num_tasks, horizon=self.config.horizon,
-                           params=self.params.detach())
+            if self.config.env_steps is None:
+                return collect(self.env, self.policy, **rollout)
+            return collect_env_steps(self.env, self.policy, env_steps=self.config.env_steps, **rollout)
 
     def step(self, batch: TensorDictBase) -> torch.Tensor:
         """One update from ``batch`` ``[T, N, H]``; returns the per-task losses ``[T]`` (detached)."""
@@ -185,12 +198,13 @@ class TaskAdapter:
     def run(self, observe: Callable[[int, TensorDictBase], None] | None = None) -> torch.Tensor:
         """Returns ``[K + 1, T]``: the mean undiscounted return of each task before each update and after the last.
 
-        ``observe(k, batch)``, if given, sees each step's ``[T, N, H]`` batch before the update it feeds.
+        ``observe(k, batch)``, if given, sees each step's ``[T, N, H]`` batch before the update it feeds (average
+        per-trajectory figures over it with :func:`umrl.objectives.policy_gradient.episode_mean`).
         """
         returns = []
         for k in range(self.config.num_steps + 1):
             batch = self.collect()
-            returns.append(episode_returns(batch).mean(-1))
+            returns.append(episode_mean(episode_returns(batch), batch))
             if observe is not None:
                 observe(k, batch)
             if k < self.config.num_steps:

@@ -40,6 +40,7 @@ __all__ = [
     "baseline_features",
     "compute_advantages",
     "episode_lengths",
+    "episode_mean",
     "episode_returns",
     "fit_linear_baseline",
     "trajectory_mask",
@@ -183,3 +184,14 @@ def episode_returns(td: TensorDictBase) -> torch.Tensor:
 def episode_lengths(td: TensorDictBase) -> torch.Tensor:
     """Steps in each trajectory's first episode, ``[..., N]`` (long): the horizon unless the env ended it earlier."""
     return _first_episode(td).sum(-1)
+
+
+def episode_mean(values: torch.Tensor, td: TensorDictBase) -> torch.Tensor:
+    """Mean of per-trajectory ``values`` ``[..., N]`` over the trajectories that hold an episode, ``[...]``.
+
+    Every trajectory of a fixed-trajectory batch does; a batch of fixed env steps
+    (:func:`umrl.rollout.collect_env_steps`) pads the tasks that need fewer episodes with empty ones, which this
+    leaves out (the reference's ``AverageReturn`` over the paths it sampled).
+    """
+    held = _first_episode(td).any(-1)
+    return (values * held).sum(-1) / held.sum(-1).clamp_min(1)

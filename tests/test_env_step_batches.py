@@ -1,0 +1,101 @@
+"""Meta-test batches of a fixed number of env steps (``protocol.env_steps``, the MAML reference code's sampler):
+which episodes are kept, how many rounds run, the returns averaged over the kept episodes, and the bad values."""
+import pytest
+import torch
+from script_loading import compose_config
+from tensordict import TensorDict
+
+from umrl.configs import ConfigError, validate
+from umrl.configs.suite import SuiteConfig
+from umrl.metatest import AdaptationConfig, TaskAdapter, make_eval_env
+from umrl.modules.policy import make_gaussian_policy
+from umrl.objectives.policy_gradient import episode_mean, episode_returns
+from umrl.rollout import collect_env_steps, first_env_steps
+
+NEAR = torch.tensor([[0.2, 0.0], [0.4, 0.0]])  # on the straight policy's path: its episodes end after 4 and 8 steps
+FAR = torch.tensor([[5.0, 5.0], [-5.0, 5.0]])  # out of reach in the horizon: every episode runs to the end
+
+
+def _straight_policy():
+    """Moves (almost deterministically) 0.05 along x per step: zero weights, output bias (0.5, 0), tiny std."""
+    policy = make_gaussian_policy(2, 2, hidden=(8,), init_std=1e-4)
+    with torch.no_grad():
+        for name, p in policy.named_parameters():
+            if "scale" not in name:
+                p.zero_()
+        [*_, last] = [m for m in policy.modules() if isinstance(m, torch.nn.Linear)]
+        last.bias.copy_(torch.tensor([0.5, 0.0]))
+    return policy
+
+
+def _batch_with_lengths(lengths: list[list[int]], horizon: int = 10) -> TensorDict:
+    mask = torch.arange(horizon) < torch.tensor(lengths).unsqueeze(-1)  # [T, M, H]
+    index = torch.arange(mask[..., 0].numel()).reshape(*mask.shape[:2], 1).expand(mask.shape)
+    return TensorDict({"mask": mask, "index": index}, batch_size=mask.shape)
+
+
+def test_first_env_steps_keeps_each_tasks_first_episodes_until_the_budget_the_last_whole():
+    batch = first_env_steps(_batch_with_lengths([[10, 10, 10, 10], [3, 2, 10, 1]]), env_steps=12)
+    # task 0: 0 and 10 steps precede episodes 0 and 1 (< 12), 20 precede episode 2; task 1: 0, 3, 5 < 12, then 15
+    assert batch.shape == (2, 3, 10)
+    assert batch["mask"].sum(-1).tolist() == [[10, 10, 0], [3, 2, 10]]
+    assert batch["index"][..., 0].tolist() == [[0, 1, 2], [4, 5, 6]]  # trajectories keep their order; the 4th is dropped
+
+
+def test_collect_env_steps_reaches_every_tasks_budget_with_more_episodes_where_they_end_early():
+    horizon, per_round, budget = 20, 4, 30
+    env = make_eval_env("point_nav", torch.cat([NEAR, FAR[:1]]), per_round, seed=0, horizon=horizon)
+    batch = collect_env_steps(env, _straight_policy(), num_tasks=3, horizon=horizon, env_steps=budget)
+    env.close()
+    # 4-step episodes: 8 of them (28 steps before the 8th); 8-step: 4 (24 before the 4th); 20-step: 2 (20 before)
+    assert batch.shape == (3, 8, horizon)  # two rounds of 4 were needed for the first task
+    assert batch["mask"].sum(-1).tolist() == [[4] * 8, [8] * 4 + [0] * 4, [20] * 2 + [0] * 6]
+    with pytest.raises(ValueError, match=r"env_steps: got 0; expected an integer >= 1"):
+        collect_env_steps(env, _straight_policy(), num_tasks=3, horizon=horizon, env_steps=0)
+
+
+def test_env_step_batches_of_full_episodes_equal_the_fixed_trajectory_protocol():
+    """Without early ends, ``env_steps = N · H`` is one round of ``N`` whole episodes: the protocol's batch."""
+    horizon, trajectories = 10, 3
+    results = []
+    for env_steps in (None, trajectories * horizon):
+        torch.manual_seed(0)
+        policy = make_gaussian_policy(2, 2, hidden=(8,))
+        config = AdaptationConfig(num_steps=2, num_trajectories=trajectories, horizon=horizon, env_steps=env_steps)
+        env = make_eval_env("point_nav", FAR, trajectories, seed=0, horizon=horizon)
+        results.append(TaskAdapter(policy, env, 2, optimizer="sgd", lr=0.1, config=config).run())
+        env.close()
+    torch.testing.assert_close(results[0], results[1], rtol=0, atol=0)
+
+
+def test_adapter_records_the_mean_return_over_the_kept_episodes():
+    horizon, trajectories, budget = 20, 4, 60
+    config = AdaptationConfig(num_steps=0, num_trajectories=trajectories, horizon=horizon, env_steps=budget)
+    env = make_eval_env("point_nav", torch.cat([NEAR[:1], FAR[:1]]), trajectories, seed=0, horizon=horizon)
+    seen = []
+    returns = TaskAdapter(_straight_policy(), env, 2, optimizer="sgd", lr=0.1, config=config).run(
+        lambda k, batch: seen.append(batch.clone()))
+    env.close()
+    (batch,) = seen
+    kept = batch["mask"].any(-1)
+    assert kept.sum(-1).tolist() == [15, 3]  # the far task is padded with 12 empty trajectories
+    expected = torch.stack([episode_returns(batch)[t][kept[t]].mean() for t in range(2)])
+    # the near task's 4-step episodes: -(0.15 + 0.1 + 0.05 + 0)
+    torch.testing.assert_close(expected[0], torch.tensor(-0.3), rtol=0, atol=1e-3)
+    torch.testing.assert_close(returns[0], expected)
+    torch.testing.assert_close(episode_mean(episode_returns(batch), batch), expected)
+
+
+@pytest.mark.parametrize("value, error", [(0, ValueError), (-4000, ValueError), (2.5, TypeError), (True, TypeError)])
+def test_bad_env_steps_is_refused_in_the_house_format(value, error):
+    with pytest.raises(error, match=rf"protocol.env_steps: got {value!r}; expected an integer >= 1"):
+        AdaptationConfig(env_steps=value)
+
+
+def test_suite_config_accepts_env_steps_and_refuses_bad_values(tmp_path):
+    cfg = compose_config("benchmarks/config", "suite", [f"output_dir={tmp_path}", "protocol.env_steps=4000"])
+    assert validate(cfg, SuiteConfig).protocol.env_steps == 4000
+    assert compose_config("benchmarks/config", "suite", [f"output_dir={tmp_path}"]).protocol.env_steps is None
+    with pytest.raises(ConfigError, match=r"protocol.env_steps: got 0; expected null or an integer >= 1"):
+        validate(compose_config("benchmarks/config", "suite", [f"output_dir={tmp_path}", "protocol.env_steps=0"]),
+                 SuiteConfig)
