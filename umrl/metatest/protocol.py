@@ -80,7 +80,7 @@ class AdaptationConfig:
             ``"swept"`` (:func:`sgd_lr_factor`); applies to ``optimizer="sgd"``.
         sgd_later_factor: ``"swept"``'s factor of ``α`` after the first update (> 0); a suite cell replaces it with
             the best of ``sweep.later_factors`` on the sweep tasks. Ignored by the other schedules.
-        env_steps: ``None`` (PROTOCOL.md): every batch is ``num_trajectories`` trajectories per task. An integer
+        env_steps: ``None`` (docs/protocol.md): every batch is ``num_trajectories`` trajectories per task. An integer
             ``S`` >= 1: every batch is each task's first episodes up to ``S`` env steps, the last one whole, rolled out
             ``num_trajectories`` at a time (:func:`umrl.rollout.collect_env_steps`), and the recorded return is the
             mean over those episodes: the MAML reference code's test-time sampler (``test_maml_point.py``:

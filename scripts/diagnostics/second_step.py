@@ -1,7 +1,7 @@
 """Meta-test a MAML initialisation at k = 0 … K under each SGD schedule and each way of sampling a batch, to tell
 whether a poor second step comes from the update itself or from the batch it is computed on.
 
-    python benchmarks/second_step.py --run outputs/maml/point_nav/oracle/seed1 --steps 3 \
+    python scripts/diagnostics/second_step.py --run outputs/maml/point_nav/oracle/seed1 --steps 3 \
         --schedules constant reference --env-steps none 4000
 
 A diagnostic, not a method. The update is the MAML reference code's test-time VPG step (``tests/
@@ -17,7 +17,7 @@ Every (schedule, sampling) pair adapts the init at ``--run`` (a MAML run directo
 markdown row per pair and ``k``: the mean return over tasks and its standard error, the worst task's return, the
 share of tasks below ``--collapse`` (default -50), the mean number of episodes per task's batch and their mean
 length. ``--log-std`` replaces the init's learned log-std (a diagnostic of the action noise's part, as
-``benchmarks/action_noise.py``).
+``scripts/diagnostics/action_noise.py``).
 """
 from __future__ import annotations
 
@@ -96,7 +96,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=0, help="meta-test seed")
     parser.add_argument("--collapse", type=float, default=-50.0, help="a task's return counted as collapsed below")
     parser.add_argument("--log-std", type=float, default=None,
-                        help="replace the init's learned log-std by this value (as benchmarks/action_noise.py)")
+                        help="replace the init's learned log-std by this value (as scripts/diagnostics/action_noise.py)")
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
