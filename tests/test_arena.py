@@ -1,4 +1,4 @@
-"""The bounded-arena ablation of UML-random (issue 14): point_nav's ``arena`` option, the ``random_arena`` proposal,
+"""The bounded-arena ablation of UML-random: point_nav's ``arena`` option, the ``random_arena`` proposal,
 the ``env.arena`` config key and the ``uml_random_arena`` method end to end in a tiny suite."""
 import math
 

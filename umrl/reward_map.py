@@ -8,7 +8,7 @@ module evaluates every skill's pseudo-reward over
 - polar samples of the disc of radius R (rings x angles), so "the best point within radius R is on the edge" is exact;
 - grids of the evaluation goal square and of ``[-1, 1]²``, and the held-out evaluation goals.
 
-:func:`reward_map_stats` turns these into the numbers that explain UML-random's tasks (issue 14): how much each
+:func:`reward_map_stats` turns these into the numbers that explain UML-random's tasks: how much each
 skill's reward varies inside the goal square against the whole reachable disc, the fraction of skills whose best
 reachable point is on the disc's edge ("run as far as possible in one direction"), and how many skills win somewhere
 near the origin. :func:`plot_territories` and :func:`plot_rays` draw the figures.
