@@ -87,7 +87,7 @@ class AdaptationConfig:
             ``batch_size=4000``, i.e. ``S = 4000``). Where episodes end early, a batch then holds more of them.
     """
 
-    num_steps: int = 10
+    num_steps: int = 20
     num_trajectories: int = 40
     horizon: int = 100
     gamma: float = 0.99
