@@ -2,6 +2,7 @@
 naming the file, and only ``umrl.checkpoints.convert`` (with a warning) reads the old torch.save files."""
 import os
 import pathlib
+import pickle
 import warnings
 
 import numpy as np
@@ -148,3 +149,12 @@ def test_a_suite_cell_does_not_unpickle_a_reused_run(tmp_path):
     with pytest.raises(LegacyCheckpointError, match=str(path)):
         run_cell(spec)
     assert not marker.exists() and not (tmp_path / "cell.csv").exists()
+
+
+def test_convert_refuses_a_file_that_would_run_code(tmp_path):
+    marker = tmp_path / "marker"
+    path = _malicious(tmp_path / "run", marker)
+    with pytest.raises(pickle.UnpicklingError), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        convert_checkpoint(path, tmp_path / "new")
+    assert not marker.exists()

@@ -1,8 +1,11 @@
 """``python -m umrl.checkpoints.convert OLD NEW``: rewrite a torch.save (pickle) checkpoint of older umrl versions
 in the current format (:mod:`umrl.checkpoint_file`: data only, hash-checked).
 
-**Unpickling runs whatever code the file names: convert only files you trust** (your own runs, this repository's
-``results/``). This command is the only place umrl unpickles a checkpoint; every loader refuses the old format.
+It reads OLD with ``torch.load(weights_only=True)``, torch's restricted unpickler, allowing beyond tensors and
+containers only numpy's array reconstruction (:data:`OLD_FORMAT_GLOBALS`, all that umrl's old checkpoints hold):
+a file naming any other callable is refused before it runs. It is still an unpickler, so **convert only files you
+trust** (your own runs, this repository's ``results/``). This command is the only place umrl reads a pickle; every
+loader refuses the old format.
 
 Absolute paths are machine-specific: an absolute ``output_dir`` in the config becomes NEW's run directory (relative
 to the working directory when it lies inside it), ``--relocate FROM=TO`` rewrites other values that start with the
@@ -20,13 +23,18 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from omegaconf import OmegaConf
 
 from umrl.checkpoint_file import write_state
 from umrl.runtime import write_text_atomic
 
-__all__ = ["UNSAFE_WARNING", "absolute_paths", "convert_checkpoint", "relocate_paths"]
+OLD_FORMAT_GLOBALS = (np._core.multiarray._reconstruct, np.ndarray, np.dtype,
+                      *(type(np.dtype(t)) for t in ("uint32", "uint64", "int64", "float32", "float64", "bool")))
+"""The non-torch objects umrl's torch.save checkpoints hold (numpy arrays in RNG and replay states)."""
+
+__all__ = ["OLD_FORMAT_GLOBALS", "UNSAFE_WARNING", "absolute_paths", "convert_checkpoint", "relocate_paths"]
 
 UNSAFE_WARNING = ("umrl.checkpoints.convert unpickles {path}: a pickle can run arbitrary code while it loads. Convert "
                   "only checkpoints you trust (your own runs, this repository's results/).")
@@ -81,7 +89,8 @@ def convert_checkpoint(source: str | os.PathLike, destination: str | os.PathLike
     if destination.exists() and destination.resolve() == source.resolve():
         raise ValueError(f"destination: got {str(destination)!r}; expected a path other than the source")
     warnings.warn(UNSAFE_WARNING.format(path=source), UserWarning, stacklevel=2)
-    state = torch.load(source, map_location="cpu", weights_only=False)
+    with torch.serialization.safe_globals(list(OLD_FORMAT_GLOBALS)):
+        state = torch.load(source, map_location="cpu", weights_only=True)
     if not isinstance(state, dict) or "format" not in state:
         raise ValueError(f"source: got {source} holding a {type(state).__name__}; expected a umrl checkpoint dict "
                          "with a 'format' entry")
