@@ -89,5 +89,5 @@ def test_unknown_family_lists_choices():
 
 def test_non_finite_tasks_are_refused_with_their_position():
     tasks = torch.tensor([[0.1, 0.2], [float("nan"), 0.0]])
-    with pytest.raises(ValueError, match=r"point_nav tasks: .*1 non-finite, first at index \(1, 0\)"):
+    with pytest.raises(ValueError, match=r"tasks: .*1 non-finite, first at index \(1, 0\)"):
         make_task_env("point_nav", tasks)

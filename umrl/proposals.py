@@ -42,7 +42,7 @@ from umrl.envs.registry import check_observation_size
 from umrl.modules.discriminator import make_discriminator
 from umrl.transforms.discriminator_reward import DiscriminatorReward
 from umrl.transforms.skill import SkillTransform
-from umrl.validation import InvalidValue
+from umrl.validation import InvalidValue, check_device
 
 PROPOSALS = ("diayn", "random", "oracle", "random_arena")
 RANDOM_ARENA = 1.0
@@ -142,6 +142,7 @@ def make_proposal(
         raise ValueError(f"need num_tasks >= 1 and trajectories_per_task >= 1, got {num_tasks} and {trajectories_per_task}.")
     if num_skills is not None and (isinstance(num_skills, bool) or not isinstance(num_skills, int) or num_skills < 1):
         raise InvalidValue("num_skills", num_skills, "null (the env's default) or an integer >= 1")
+    device = check_device("device", device)
     n = trajectories_per_task
     spec = get_env_spec(env_name)
     if name == "random_arena" and arena is None:
@@ -169,6 +170,5 @@ def make_proposal(
     num_tasks = num_tasks or num_skills
     if num_tasks > num_skills:
         raise ValueError(f"num_tasks={num_tasks} exceeds the {num_skills} skills: one skill per task.")
-    env, skills = _skill_env(env_name, discriminator, num_skills, num_tasks * n, seed, horizon, torch.device(device),
-                             options)
+    env, skills = _skill_env(env_name, discriminator, num_skills, num_tasks * n, seed, horizon, device, options)
     return TaskProposal(name, env, num_tasks, n, num_skills=num_skills, skills=skills)

@@ -38,10 +38,15 @@ from torchrl.modules import ProbabilisticActor
 from umrl.envs.threads import torch_threads_beside_physics
 from umrl.modules.batched_mlp import BatchedGaussianMLP
 from umrl.trajectories import trajectory_mask
-from umrl.validation import check_int
+from umrl.validation import InvalidType, InvalidValue, check_int
 
-__all__ = ["FunctionalPolicy", "check_cudagraphs", "collect", "collect_env_steps", "first_env_steps",
+__all__ = ["FunctionalPolicy", "NonFiniteActions", "check_cudagraphs", "collect", "collect_env_steps", "first_env_steps",
            "fixed_horizon_steps"]
+
+
+class NonFiniteActions(InvalidValue):
+    """:func:`collect`'s refusal of a rollout whose actions are not all finite, naming ``params`` (when given) or
+    ``policy``; a caller that made the parameters (MAML's inner step) can name its own setting instead."""
 
 
 class FunctionalPolicy:
@@ -77,6 +82,15 @@ class FunctionalPolicy:
     @staticmethod
     def _flat(params: TensorDictBase) -> dict[str, torch.Tensor]:
         return dict(params.flatten_keys(".").items())
+
+    def widths(self) -> tuple[int, int] | None:
+        """``(input width, action width)`` of a declared Gaussian MLP (the concatenated ``net.in_keys`` its first
+        layer reads, the mean its last layer writes); ``None`` for a network it does not recognise."""
+        if self.batched is None:
+            return None
+        linear = self.batched.linear_keys()
+        params = TensorDict.from_module(self.net)
+        return params.get(linear[0][0]).shape[-1], params.get(linear[-1][0]).shape[-2]
 
     def _call(self, flat: dict[str, torch.Tensor], td: TensorDictBase) -> TensorDictBase:
         return functional_call(self.net, flat, (td,))
@@ -142,16 +156,15 @@ def collect(
         ``"scale"``, ``"action"``, ``"action_log_prob"``, and ``"mask"`` ``[T, N, H]`` (True up to and including
         each copy's first ``done``; later steps come from auto-resets, or with ``cudagraphs`` from stepping on, and
         must be ignored).
+
+    Raises:
+        InvalidType, InvalidValue: before any step, for an argument that cannot work, naming it: ``env``,
+            ``policy`` (not a ``ProbabilisticActor``, reading a key the env does not write, or a declared Gaussian
+            MLP whose input or action width is not the env's), ``num_tasks``, ``horizon``, ``params``.
+        NonFiniteActions: after the rollout, if an action is NaN or infinite (naming ``params`` or ``policy``).
     """
-    batch = env.batch_size.numel()
-    if len(env.batch_size) != 1 or num_tasks < 1 or batch % num_tasks:
-        raise ValueError(
-            f"env batch {tuple(env.batch_size)} is not a flat batch of num_tasks={num_tasks} × N copies."
-        )
-    per_task = batch // num_tasks
-    functional = FunctionalPolicy(policy)
-    if params is not None and params.batch_dims == 1 and params.shape[0] != num_tasks:
-        raise ValueError(f"got per-task params for {params.shape[0]} tasks but num_tasks={num_tasks}.")
+    per_task, functional = _check_collect(env, policy, num_tasks, horizon, params)
+    batch = per_task * num_tasks
     if cudagraphs:
         check_cudagraphs(env)
 
@@ -169,9 +182,69 @@ def collect(
         else:
             rollout = env.rollout(horizon, policy=lambda td: act_with(params, td), auto_reset=True,
                                   break_when_any_done=False)
+    _check_actions(rollout, policy, params)
     rollout = rollout.view(num_tasks, per_task, horizon)
     rollout.set("mask", trajectory_mask(rollout["next", "done"]))
     return rollout
+
+
+def _check_collect(env: EnvBase, policy: ProbabilisticActor, num_tasks: int, horizon: int,
+                   params: TensorDictBase | None) -> tuple[int, FunctionalPolicy]:
+    """:func:`collect`'s arguments checked before any step: ``(N, the policy's FunctionalPolicy)``."""
+    if not isinstance(env, EnvBase):
+        raise InvalidType("env", env, "a TorchRL env (EnvBase), e.g. umrl.envs.make_env(name, num_envs)")
+    if not isinstance(policy, ProbabilisticActor):
+        raise InvalidType("policy", policy, "a ProbabilisticActor, e.g. umrl.modules.make_gaussian_policy(obs_dim, "
+                                            "act_dim)")
+    check_int("horizon", horizon, min=1)
+    check_int("num_tasks", num_tasks, min=1)
+    if len(env.batch_size) != 1:
+        raise InvalidValue("env", env, "an env with a flat batch [T * N]", note=f"batch size {list(env.batch_size)}")
+    batch = env.batch_size[0]
+    if batch % num_tasks:
+        raise InvalidValue("num_tasks", num_tasks, f"a divisor of the env's {batch} copies (T tasks × N copies each)")
+    if params is not None:
+        expected = f"None, shared parameters (batch size []) or one set per task (batch size [{num_tasks}], num_tasks)"
+        if not isinstance(params, TensorDictBase):
+            raise InvalidType("params", params, f"a TensorDict: {expected}")
+        if params.batch_size not in (torch.Size([]), torch.Size([num_tasks])):
+            raise InvalidValue("params", params, expected)
+    functional = FunctionalPolicy(policy)
+    _check_policy_fits(env, functional)
+    return batch // num_tasks, functional
+
+
+def _check_policy_fits(env: EnvBase, functional: FunctionalPolicy) -> None:
+    """Refuse a policy that reads a key ``env`` does not write, or whose widths are not the env's."""
+    specs = (env.full_observation_spec, env.full_state_spec)
+    written = {key: spec[key].shape[-1] for spec in specs for key in spec.keys(True, True)}
+    in_keys = functional.net.in_keys
+    missing = [key for key in in_keys if key not in written]
+    if missing:
+        raise InvalidValue("policy", functional.policy, f"a policy reading keys the env writes: {list(written)}",
+                           note=f"it reads {missing}, which the env does not write")
+    widths = functional.widths()
+    if widths is None:
+        return
+    inputs = {key: written[key] for key in in_keys}
+    if widths[0] != sum(inputs.values()):
+        parts = " + ".join(f"{key} {width}" for key, width in inputs.items())
+        raise InvalidValue("policy", functional.policy, f"a policy whose first layer reads the env's "
+                           f"{sum(inputs.values())} features ({parts})", note=f"its first layer reads {widths[0]} features")
+    if widths[1] != env.action_spec.shape[-1]:
+        raise InvalidValue("policy", functional.policy, f"a policy with the env's {env.action_spec.shape[-1]} action "
+                           "dims", note=f"its mean has {widths[1]} action dims")
+
+
+def _check_actions(rollout: TensorDictBase, policy: ProbabilisticActor, params: TensorDictBase | None) -> None:
+    """Refuse non-finite actions (blamed on ``params`` if given, else on ``policy``): an env steps on them without
+    complaint, and the damage shows only later, in rewards or the baseline fit."""
+    action = rollout["action"]
+    finite = torch.isfinite(action)
+    if not bool(finite.all()):
+        name, value = ("policy", policy) if params is None else ("params", params)
+        raise NonFiniteActions(name, value, "parameters under which the policy's actions are finite",
+                           note=f"{int((~finite).sum())} of {action.numel()} action entries are not finite")
 
 
 def collect_env_steps(

@@ -17,12 +17,18 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from tensordict import TensorDictBase
 
 DEVICES = ("cpu", "cuda", "auto")
 
 
 def describe(value: Any, limit: int = 240) -> str:
-    """A short printable form of ``value`` for error messages (tensors by shape and dtype)."""
+    """A short printable form of ``value`` for error messages (tensors by shape and dtype, TensorDicts by batch
+    size, modules by class)."""
+    if isinstance(value, TensorDictBase):
+        return f"a {type(value).__name__} of batch size {list(value.batch_size)}"
+    if isinstance(value, torch.nn.Module):
+        return f"a {type(value).__name__}"
     if isinstance(value, torch.Tensor) and value.numel() > 1:
         return f"a tensor of shape {list(value.shape)} and dtype {value.dtype}"
     text = repr(value.item() if isinstance(value, torch.Tensor) else value)
@@ -196,6 +202,17 @@ def check_list(
     return checked
 
 
+def check_keys(name: str, value: Any, keys: Sequence, expected: str) -> TensorDictBase:
+    """``value`` if it is a TensorDict holding every key of ``keys`` (nested keys as tuples); the note names the
+    missing ones. ``expected`` says what the batch is (``"transitions with the keys [...]"``)."""
+    if not isinstance(value, TensorDictBase):
+        raise InvalidType(name, value, expected)
+    missing = [key for key in keys if value.get(key, None) is None]
+    if missing:
+        raise InvalidValue(name, value, expected, note=f"no {', '.join(map(repr, missing))}")
+    return value
+
+
 def check_mapping(name: str, value: Any) -> dict:
     """``value`` as a ``dict`` with string keys (free-form settings such as Hydra overrides)."""
     if not isinstance(value, Mapping) or not all(isinstance(k, str) for k in value):
@@ -217,6 +234,25 @@ def resolve_device(name: str, value: Any) -> str:
     return value
 
 
+def check_device(name: str, value: Any) -> torch.device:
+    """``value`` (a ``torch.device`` or its name, or ``"auto"``, see :func:`resolve_device`) as a ``torch.device``;
+    a CUDA device is refused where none (or not that index) is available, like ``"cuda"`` in a config."""
+    if isinstance(value, str) and value in DEVICES:
+        return torch.device(resolve_device(name, value))
+    try:
+        device = torch.device(value)
+    except (RuntimeError, TypeError):
+        raise InvalidValue(name, value, "a torch.device or one of 'cpu', 'cuda', 'auto'") from None
+    if device.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if not count:
+            raise InvalidValue(name, value, "one of 'cpu', 'auto'", note="no CUDA device is available on this machine")
+        if device.index is not None and device.index >= count:
+            raise InvalidValue(name, value, f"a CUDA device index below {count}",
+                               note=f"this machine has {count} CUDA device{'s' if count > 1 else ''}")
+    return device
+
+
 __all__ = [
     "DEVICES",
     "Invalid",
@@ -225,9 +261,11 @@ __all__ = [
     "bounds_text",
     "check_bool",
     "check_choice",
+    "check_device",
     "check_finite",
     "check_float",
     "check_int",
+    "check_keys",
     "check_list",
     "check_mapping",
     "check_path_exists",

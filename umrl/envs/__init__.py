@@ -16,7 +16,7 @@ from umrl.envs import builtin  # noqa: F401  (registers point_nav, half_cheetah,
 from umrl.envs.registry import ENV_NAMES, EnvSpec, get_env_spec, register_env, unregister_env
 from umrl.envs.task_reward import TaskReward
 from umrl.envs.tasks import TaskFamily, get_task_family
-from umrl.validation import check_choice, check_int
+from umrl.validation import check_choice, check_device, check_int
 
 BACKENDS = ("default", "batched", "gym")
 
@@ -39,7 +39,8 @@ def make_env(
 
     Keyword Args:
         seed: seeds the env's reset noise (MuJoCo envs); ``None`` leaves it unseeded.
-        device: device of the returned tensors.
+        device: device of the returned tensors (a ``torch.device``, its name, or ``"auto"``: CUDA when available);
+            a CUDA device is refused on a machine without one.
         horizon: episode length enforced by ``StepCounter`` (> 0).
         backend: MuJoCo simulation path, ``"batched"`` (default: our batched MjData env) or ``"gym"`` (TorchRL's
             wrapper over a gymnasium sync vector env, the reference). Ignored for point_nav.
@@ -50,6 +51,7 @@ def make_env(
     num_envs = check_int("num_envs", num_envs, min=1)
     horizon = check_int("horizon", horizon, min=1)
     backend = check_choice("backend", backend, BACKENDS)
+    device = check_device("device", device)
     accepted = [p for p in inspect.signature(spec.make).parameters if p not in ("num_envs", "seed", "device", "backend")]
     unknown = sorted(set(options) - set(accepted))
     if unknown:
@@ -68,7 +70,8 @@ def make_env(
 def make_task_env(name: str, tasks: torch.Tensor, **kwargs) -> TransformedEnv:
     """``make_env(name, len(tasks), **kwargs)`` with env copy ``i`` rewarded by task ``tasks[i]``.
 
-    ``tasks`` has shape ``[B, task_dim]`` (see :mod:`umrl.envs.tasks`); change them later with
+    ``tasks`` has shape ``[B, task_dim]`` (a tensor or nested lists; one task is a batch of one, ``[[x, y]]``; see
+    :mod:`umrl.envs.tasks`); change them later with
     ``env.transform[-1].set_tasks(new_tasks)``.
     """
     family = get_task_family(name)

@@ -21,12 +21,13 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
 
 from umrl.envs.registry import get_env_spec
-from umrl.validation import check_finite
+from umrl.validation import InvalidType, InvalidValue, check_finite
 
 #: Seed of the held-out evaluation tasks; never used to draw meta-training tasks.
 EVAL_TASK_SEED = 20190531
@@ -68,15 +69,19 @@ class TaskFamily:
         """The fixed held-out evaluation tasks, shape ``[n, task_dim]`` (the same on every call and machine)."""
         return self.sample(n, torch.Generator().manual_seed(EVAL_TASK_SEED))
 
-    def check_tasks(self, tasks: torch.Tensor, batch_size: int | None = None) -> torch.Tensor:
-        """Validate a task batch ``[B, task_dim]`` and return it as float32."""
-        if tasks.ndim != 2 or tasks.shape[-1] != self.task_dim:
-            raise ValueError(
-                f"{self.env_name} tasks must have shape [num_envs, {self.task_dim}], got {tuple(tasks.shape)}."
-            )
-        if batch_size is not None and tasks.shape[0] != batch_size:
-            raise ValueError(f"got {tasks.shape[0]} tasks for an env batch of {batch_size}: give one task per env copy.")
-        return check_finite(f"{self.env_name} tasks", tasks.to(torch.float32))
+    def check_tasks(self, tasks: Any, batch_size: int | None = None) -> torch.Tensor:
+        """``tasks`` ``[B, task_dim]`` (a tensor or nested sequences of numbers; ``B == batch_size`` when given) as
+        float32, or an error naming the argument ``tasks``: a single task must be given as a batch of one."""
+        rows = "num_envs" if batch_size is None else batch_size
+        expected = f"a [{rows}, {self.task_dim}] tensor (one {self.env_name} task of {self.task_dim} numbers per env copy)"
+        try:
+            checked = torch.as_tensor(tasks, dtype=torch.float32)
+        except (TypeError, ValueError, RuntimeError):
+            raise InvalidType("tasks", tasks, expected) from None
+        if not (checked.ndim == 2 and checked.shape[1] == self.task_dim and batch_size in (None, checked.shape[0])):
+            note = None if isinstance(tasks, torch.Tensor) else f"shape {list(checked.shape)}"
+            raise InvalidValue("tasks", tasks, expected, note=note)
+        return check_finite("tasks", checked)
 
     def reward(self, next_td: TensorDictBase, action: torch.Tensor, task: torch.Tensor) -> torch.Tensor:
         """Task reward ``[B, 1]`` from the ``"next"`` physics keys, the action ``[B, act_dim]`` and tasks ``[B, task_dim]``."""

@@ -20,7 +20,8 @@ from torchrl.objectives import LossModule, SACLoss, SoftUpdate
 from torchrl.objectives.utils import ValueEstimators
 
 from umrl.modules.discriminator import discriminator_logits
-from umrl.transforms.discriminator_reward import skill_reward
+from umrl.transforms.discriminator_reward import check_skills, skill_reward
+from umrl.validation import check_keys
 
 __all__ = ["DIAYNLoss", "DIAYNUpdate", "make_diayn_optimizers"]
 
@@ -150,6 +151,8 @@ class DIAYNLoss(LossModule):
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         self.sac_loss.set_keys(**{name: getattr(self.tensor_keys, name) for name in self._SAC_KEYS})
+        written = unravel_key(("next", self.tensor_keys.reward))  # the relabelled reward: written, never read
+        self._required_keys = [key for key in self.in_keys if key != written]
 
     def make_value_estimator(self, value_type: ValueEstimators = None, **hyperparams):
         """Sets SAC's value estimator (e.g. ``make_value_estimator(gamma=0.99)``)."""
@@ -170,9 +173,11 @@ class DIAYNLoss(LossModule):
         return [*self.sac_loss.out_keys, "loss_discriminator", "discriminator_accuracy", "pseudo_reward"]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        check_keys("tensordict", tensordict, self._required_keys, f"a batch of transitions with {self._required_keys}")
+        skill = tensordict.get(self.tensor_keys.skill)
+        check_skills(f"tensordict[{self.tensor_keys.skill!r}]", skill, self.num_skills)
         # One forward of D serves both its loss and the relabelled reward (the reward sees detached logits).
         logits = discriminator_logits(self.discriminator, tensordict.get(self.tensor_keys.discriminator_observation))
-        skill = tensordict.get(self.tensor_keys.skill)
         reward = skill_reward(logits.detach(), skill)
         data = tensordict.copy()  # shallow: the relabelled reward and SAC's td_error land on the copy only
         data.set(unravel_key(("next", self.tensor_keys.reward)), reward)

@@ -36,6 +36,10 @@ from torchrl.objectives.value.functional import vec_generalized_advantage_estima
 
 from umrl.trajectories import trajectory_mask
 
+#: TorchRL's fast GAE drops the terms of its ``(γλ)^k`` series below this threshold (its ``thr``); with ``γλ`` below
+#: it no term is left and it fails (``IndexError``), although the estimate is then the one-step TD error.
+_GAE_SERIES_THRESHOLD = 1e-7
+
 __all__ = [
     "baseline_features",
     "compute_advantages",
@@ -105,6 +109,22 @@ def fit_linear_baseline(
     )
 
 
+def _gae(
+    gamma: float, lmbda: float, values: torch.Tensor, next_values: torch.Tensor, reward: torch.Tensor,
+    ends: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(advantage, value_target)`` of TorchRL's vectorised GAE over ``[..., H, 1]`` tensors (time on dim -2);
+    ``ends`` marks the steps after which nothing is bootstrapped.
+
+    With ``γλ`` under ``_GAE_SERIES_THRESHOLD`` (``gamma=0`` or ``lmbda=0``) the advantage is the one-step TD
+    error ``r + γ V(s') - V(s)`` (``r - V(s)`` for ``gamma=0``), computed here: TorchRL's scalar path fails on it.
+    """
+    if gamma * lmbda < _GAE_SERIES_THRESHOLD:
+        advantage = reward + gamma * (~ends) * next_values - values
+        return advantage, advantage + values
+    return vec_generalized_advantage_estimate(gamma, lmbda, values, next_values, reward, ends, ends, time_dim=-2)
+
+
 def compute_advantages(
     td: TensorDictBase,
     *,
@@ -131,12 +151,12 @@ def compute_advantages(
     reward = td["next", "reward"] * valid
     ends = done | ~valid  # every step after the first episode is its own (zero-reward) end
     zeros = torch.zeros_like(reward)
-    _, returns = vec_generalized_advantage_estimate(gamma, 1.0, zeros, zeros, reward, ends, ends, time_dim=-2)
+    _, returns = _gae(gamma, 1.0, zeros, zeros, reward, ends)
     values = fit_linear_baseline(
         baseline_features(td, time_scale=time_scale), returns, mask, reg_coeff=reg_coeff
     ) * valid
     next_values = torch.cat([values[..., 1:, :], torch.zeros_like(values[..., :1, :])], dim=-2)
-    advantage, _ = vec_generalized_advantage_estimate(gamma, lmbda, values, next_values, reward, ends, ends, time_dim=-2)
+    advantage, _ = _gae(gamma, lmbda, values, next_values, reward, ends)
     advantage = advantage * valid
     if normalize:
         dims = tuple(range(-3, 0))

@@ -48,7 +48,7 @@ from umrl.objectives.policy_gradient import episode_returns
 from umrl.optim.trpo import TRPOStep
 from umrl.profiling import device_clock
 from umrl.proposals import make_proposal
-from umrl.rollout import check_cudagraphs, collect
+from umrl.rollout import NonFiniteActions, check_cudagraphs, collect
 from umrl.runtime import (
     Checkpointer,
     check_finite,
@@ -61,7 +61,7 @@ from umrl.runtime import (
     seed_everything,
     set_rng_state,
 )
-from umrl.validation import resolve_device
+from umrl.validation import InvalidValue, resolve_device
 
 __all__ = ["MAMLTrainer", "build", "meta_batch", "meta_iteration", "meta_step", "train"]
 
@@ -86,7 +86,11 @@ def meta_batch(cfg: DictConfig, proposal, policy, loss: MAMLLoss, generator: tor
         adapted = loss.adapt(support)
     check_finite(dict(adapted.items(True, True)), "the adapted parameters (inner step)")
     inner_s = device_clock(device) - inner_start
-    query = collect(proposal.env, policy, num_tasks=num_tasks, horizon=horizon, params=adapted.detach(), **graphs)
+    try:
+        query = collect(proposal.env, policy, num_tasks=num_tasks, horizon=horizon, params=adapted.detach(), **graphs)
+    except NonFiniteActions as err:  # the inner step diverged
+        raise InvalidValue("maml.inner_lr", cfg.maml.inner_lr, "a smaller finite number > 0",
+                           note=f"the adapted policy's actions after the inner step: {err.note}") from err
     return support, adapted, advantages(query), inner_s
 
 

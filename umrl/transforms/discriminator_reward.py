@@ -23,8 +23,17 @@ from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
 from umrl.modules.discriminator import discriminator_logits
+from umrl.validation import InvalidValue, check_keys
 
-__all__ = ["DiscriminatorReward", "skill_reward", "skill_rewards"]
+__all__ = ["DiscriminatorReward", "check_skills", "skill_reward", "skill_rewards"]
+
+
+def check_skills(name: str, skill: torch.Tensor, num_skills: int) -> torch.Tensor:
+    """``skill`` if its last dim holds ``num_skills`` entries (one-hot skills ``[*B, K]``), else an error naming
+    ``name``."""
+    if skill.shape[-1:] != (num_skills,):
+        raise InvalidValue(name, skill, f"one-hot skills [*B, {num_skills}] (num_skills)", note=f"shape {list(skill.shape)}")
+    return skill
 
 
 def skill_rewards(logits: torch.Tensor) -> torch.Tensor:
@@ -93,22 +102,29 @@ class DiscriminatorReward(Transform):
 
     def pseudo_reward(self, observation: torch.Tensor, skill: torch.Tensor) -> torch.Tensor:
         """log D(z|s) + log K for observations [*B, obs_dim] and one-hot skills [*B, K] -> [*B, 1], no grad."""
-        if skill.shape[-1] != self.num_skills:
-            raise ValueError(f"skill has {skill.shape[-1]} entries in its last dim, expected {self.num_skills}.")
+        check_skills("skill", skill, self.num_skills)
         with torch.no_grad():
             return skill_reward(discriminator_logits(self.discriminator, observation), skill)
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         key = self.observation_key
         if isinstance(key, tuple) and key[0] == "next":
-            observation = next_tensordict.get(key[1:])
+            observation = next_tensordict.get(key[1:], None)
         else:
-            observation = tensordict.get(key)
-        next_tensordict.set(self.reward_key, self.pseudo_reward(observation, tensordict.get(self.skill_key)))
+            observation = tensordict.get(key, None)
+        skill = tensordict.get(self.skill_key, None)
+        if observation is None or skill is None:  # an env without the keys (no SkillTransform before this one)
+            missing = [k for k, v in ((key, observation), (self.skill_key, skill)) if v is None]
+            raise InvalidValue("env", self.parent, f"an env writing {[key, self.skill_key]} before this "
+                               "DiscriminatorReward (append a SkillTransform first)",
+                               note=f"no {', '.join(map(repr, missing))}")
+        next_tensordict.set(self.reward_key, self.pseudo_reward(observation, skill))
         return next_tensordict
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Relabels a batch of transitions (e.g. a replay sample) in place with the current discriminator."""
+        keys = [self.observation_key, self.skill_key]
+        check_keys("tensordict", tensordict, keys, f"a batch of transitions with {keys}")
         reward = self.pseudo_reward(tensordict.get(self.observation_key), tensordict.get(self.skill_key))
         tensordict.set(unravel_key(("next", self.reward_key)), reward)
         return tensordict
