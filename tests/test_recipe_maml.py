@@ -9,7 +9,7 @@ from umrl.trainers import compose
 from umrl.trainers.maml import train
 
 TINY = ["env.horizon=10", "meta_batch_size=2", "trajectories_per_task=3", "policy.hidden=[16]",
-        "logger.backend=none", "progress=false", "checkpoint.every=1", "trpo.cg_iters=3", "num_skills=4"]
+        "logger.backend=none", "progress=false", "checkpoint.every=1", "trpo.cg_iters=3"]
 
 
 def _cfg(tmp_path, *overrides):
@@ -20,7 +20,8 @@ def _cfg(tmp_path, *overrides):
 def test_two_iterations_per_proposal(tmp_path, proposal, tiny_diayn_checkpoint):
     diayn, _ = tiny_diayn_checkpoint
     out = tmp_path / "maml"
-    result = train(_cfg(out, f"proposal={proposal}", "iterations=2", f"diayn_checkpoint={diayn}"))
+    skills = ["num_skills=4"] if proposal == "random" else []  # diayn's come from the checkpoint, oracle has none
+    result = train(_cfg(out, f"proposal={proposal}", "iterations=2", f"diayn_checkpoint={diayn}", *skills))
     assert result["iteration"] == 2
     for key in ("train/return_pre", "train/return_post", "train/kl", "train/improvement", "time/collect_s",
                 "time/learn_s", "time/env_steps_per_s", "train/reward_mean"):

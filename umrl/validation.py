@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 from collections.abc import Callable, Collection, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,10 @@ import torch
 from tensordict import TensorDictBase
 
 DEVICES = ("cpu", "cuda", "auto")
+
+SEED_MAX = 2**63 - 1
+"""The largest seed accepted: ``torch.manual_seed`` takes up to ``2**64 - 1``, and umrl derives further seeds by adding
+offsets (DIAYN's evaluation env, the suite's sweep tasks), so seeds stay within int64."""
 
 
 def describe(value: Any, limit: int = 240) -> str:
@@ -65,12 +70,17 @@ def bounds_text(
     low, low_open = (gt, True) if gt is not None else (ge, False)
     high, high_open = (lt, True) if lt is not None else (le, False)
     if low is not None and high is not None:
-        return f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+        return f"in {'(' if low_open else '['}{_bound(low)}, {_bound(high)}{')' if high_open else ']'}"
     if low is not None:
-        return f"{'>' if low_open else '>='} {low:g}"
+        return f"{'>' if low_open else '>='} {_bound(low)}"
     if high is not None:
-        return f"{'<' if high_open else '<='} {high:g}"
+        return f"{'<' if high_open else '<='} {_bound(high)}"
     return ""
+
+
+def _bound(value: float) -> str:
+    """Integers in full (``9223372036854775807``, not ``9.22337e+18``), floats short."""
+    return str(value) if isinstance(value, int) else f"{value:g}"
 
 
 def _in_bounds(value: float, gt: float | None, ge: float | None, lt: float | None, le: float | None) -> bool:
@@ -155,6 +165,26 @@ def check_name(name: str, value: Any) -> str:
     if value in ("", ".", "..") or any(c in value for c in "/\\\0"):
         raise InvalidValue(name, value, expected)
     return value
+
+
+def check_seed(name: str, value: Any) -> int:
+    """``value`` as a seed: an ``int`` in ``[0, SEED_MAX]`` (:data:`SEED_MAX`)."""
+    return check_int(name, value, min=0, max=SEED_MAX)
+
+
+def check_writable_dir(name: str, value: Any) -> str:
+    """``value`` if it is a path (``str``) to a directory this process can write into, or can create: every part of
+    it that exists is a directory and the deepest existing one is writable. Nothing is created."""
+    check_str(name, value)
+    path = Path(value).absolute()
+    existing = next(p for p in (path, *path.parents) if p.exists())
+    if not existing.is_dir():
+        fault = "a file" if existing.is_file() else "not a directory"
+    elif not os.access(existing, os.W_OK | os.X_OK):
+        fault = "not writable"
+    else:
+        return value
+    raise InvalidValue(name, value, "a writable directory", note=fault if existing == path else f"{existing} is {fault}")
 
 
 def check_choice(name: str, value: Any, choices: Collection) -> Any:
@@ -255,6 +285,7 @@ def check_device(name: str, value: Any) -> torch.device:
 
 __all__ = [
     "DEVICES",
+    "SEED_MAX",
     "Invalid",
     "InvalidType",
     "InvalidValue",
@@ -271,6 +302,8 @@ __all__ = [
     "check_path_exists",
     "check_positive",
     "check_probability",
+    "check_seed",
     "check_str",
+    "check_writable_dir",
     "resolve_device",
 ]

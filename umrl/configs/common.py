@@ -4,7 +4,19 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from umrl.configs.validate import boolean, choice, device, group, int_list, integer, name, number, string
+from umrl.configs.validate import (
+    boolean,
+    choice,
+    device,
+    group,
+    int_list,
+    integer,
+    name,
+    number,
+    seed,
+    string,
+    writable_dir,
+)
 from umrl.envs import BACKENDS, ENV_NAMES
 from umrl.runtime import LOGGER_BACKENDS
 from umrl.validation import InvalidValue
@@ -47,15 +59,15 @@ class RunLoggerConfig(LoggerConfig):
 
 @dataclass
 class RunConfig:
-    """The keys every recipe has: ``seed`` (>= 0), ``device`` (cpu | cuda | auto), ``num_threads`` (torch
-    intra-op threads, >= 1), the run's ``logger``, ``output_dir``, ``resume`` and ``progress`` (the tqdm bar).
-    Each recipe's schema extends it."""
+    """The keys every recipe has: ``seed`` (in [0, 2**63 - 1]), ``device`` (cpu | cuda | auto), ``num_threads``
+    (torch intra-op threads, >= 1), the run's ``logger``, ``output_dir`` (a writable directory), ``resume`` and
+    ``progress`` (the tqdm bar). Each recipe's schema extends it."""
 
-    seed: int = integer(min=0)
+    seed: int = seed()
     device: str = device()
     num_threads: int = integer(min=1)
     logger: RunLoggerConfig = group(RunLoggerConfig)
-    output_dir: str = string()
+    output_dir: str = writable_dir()
     resume: bool = boolean()
     progress: bool = boolean()
 
@@ -88,10 +100,27 @@ class TRPOConfig:
     max_backtracks: int = integer(min=0)
 
 
+COMPILE_ON_CPU = (
+    "torch.compile on a CPU: over a minute of compilation before the first update of a tiny run, and no faster "
+    "updates after (measured)"
+)
+"""Why DIAYN's ``optim.compile=true`` is refused without a GPU."""
+
+
 def cudagraphs_errors(cudagraphs: bool, device: str, key: str) -> list[str]:
     """The error of a CUDA-graph switch ``key`` set true on a device other than CUDA (``device`` resolved:
     ``cpu``/``cuda``)."""
-    if cudagraphs and device != "cuda":
-        return [InvalidValue(key, True, f"false with device={device} (CUDA graphs need device=cuda, or auto on a "
-                             "machine with a GPU)").message()]
+    return _cuda_only_errors(key, cudagraphs, device, "CUDA graphs need device=cuda, or auto on a machine with a GPU")
+
+
+def compile_errors(compile: bool, device: str, key: str) -> list[str]:
+    """The error of a ``torch.compile`` switch ``key`` set true on a device other than CUDA (see
+    :data:`COMPILE_ON_CPU`)."""
+    return _cuda_only_errors(key, compile, device, "set device=cuda, or auto on a machine with a GPU",
+                             note=COMPILE_ON_CPU)
+
+
+def _cuda_only_errors(key: str, value: bool, device: str, why: str, note: str | None = None) -> list[str]:
+    if value and device != "cuda":
+        return [InvalidValue(key, True, f"false with device={device} ({why})", note=note).message()]
     return []

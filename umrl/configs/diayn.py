@@ -4,7 +4,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from umrl.configs.common import BatchedEnvConfig, CheckpointConfig, RunConfig, cudagraphs_errors
+from umrl.configs.common import (
+    BatchedEnvConfig,
+    CheckpointConfig,
+    RunConfig,
+    compile_errors,
+    cudagraphs_errors,
+)
+from umrl.configs.memory import Allocation, allocation_errors, step_bytes
 from umrl.configs.validate import boolean, group, int_list, integer, number
 from umrl.envs import get_env_spec
 from umrl.validation import InvalidValue
@@ -43,12 +50,15 @@ class ReplayBufferConfig:
 
 @dataclass
 class OptimConfig:
+    """SAC's and the discriminator's optimisation; ``alpha`` > 0 (the entropy scale, learnt as its log unless
+    ``fixed_alpha``); ``compile`` and ``cudagraphs`` only with ``device=cuda``."""
+
     lr: float = number(gt=0)
     discriminator_lr: float = number(gt=0)
     updates_per_frame: float = number(gt=0)
     gamma: float = number(ge=0, le=1)
     tau: float = number(gt=0, le=1)
-    alpha: float = number(ge=0)
+    alpha: float = number(gt=0)
     fixed_alpha: bool = boolean()
     compile: bool = boolean()
     cudagraphs: bool = boolean()
@@ -88,8 +98,11 @@ class DIAYNConfig(RunConfig):
     @staticmethod
     def cross_check(cfg: dict) -> list[str]:
         """The collector's batch holds whole env steps; the replay batch fits in the buffer; the discriminator's input
-        dims exist in the env's observation; CUDA graphs run on a CUDA device (``device`` is resolved here)."""
+        dims exist in the env's observation; CUDA graphs and torch.compile run on a CUDA device (``device`` is
+        resolved here); the replay buffer and the collector's batch fit in its memory (:func:`memory_errors`)."""
         errors = cudagraphs_errors(cfg["optim"]["cudagraphs"], cfg["device"], "optim.cudagraphs")
+        errors += compile_errors(cfg["optim"]["compile"], cfg["device"], "optim.compile")
+        errors += memory_errors(cfg)
         dims, obs_dim = cfg["network"]["discriminator_input_dims"], get_env_spec(cfg["env"]["name"]).obs_dim
         if dims is not None and max(dims) >= obs_dim:
             errors.append(InvalidValue("network.discriminator_input_dims", dims,
@@ -117,3 +130,30 @@ class DIAYNConfig(RunConfig):
                                        f"a rate giving at least one update in the {collector['total_frames']} frames "
                                        f"after the {warmup}-frame warm-up", note="no update would run").message())
         return errors
+
+    @staticmethod
+    def notices(cfg: dict) -> list[str]:
+        """A ``collector.total_frames`` that is not a whole number of collector batches: TorchRL's collector rounds it
+        up (the env defaults do not divide either, e.g. point_nav's 50,000 frames in batches of 1,600)."""
+        total, batch = cfg["collector"]["total_frames"], cfg["collector"]["frames_per_batch"]
+        runs = -(-total // batch) * batch
+        if runs == total:
+            return []
+        return [InvalidValue("collector.total_frames", total, f"a multiple of collector.frames_per_batch ({batch}) to "
+                             "run exactly that many frames",
+                             note=f"the collector runs whole batches: {runs} frames will run").message()]
+
+
+def memory_errors(cfg: dict) -> list[str]:
+    """``replay_buffer.size`` and ``collector.frames_per_batch`` transitions (observations, skill one-hots and action,
+    before and after each step) against the memory of ``device`` (:mod:`umrl.configs.memory`); ``cfg`` has its env
+    defaults filled."""
+    name = cfg["env"]["name"]
+    num_skills = cfg["num_skills"] or get_env_spec(name).num_skills
+    transition = step_bytes(name, extra_floats=2 * num_skills)
+    given = f"with env.name={name} and {num_skills} skills"
+    return allocation_errors([
+        Allocation("replay_buffer.size", cfg["replay_buffer"]["size"], transition, "replay buffer", given),
+        Allocation("collector.frames_per_batch", cfg["collector"]["frames_per_batch"], transition, "collector batch",
+                   given),
+    ], cfg["device"])

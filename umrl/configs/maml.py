@@ -14,6 +14,7 @@ from umrl.configs.common import (
     TRPOConfig,
     cudagraphs_errors,
 )
+from umrl.configs.memory import Allocation, allocation_errors, step_bytes
 from umrl.configs.validate import boolean, checked, choice, group, integer, number, string
 from umrl.envs import get_env_spec
 from umrl.objectives.maml_hvp import META_HVPS
@@ -80,6 +81,36 @@ def hvp_errors(cfg: Mapping) -> list[str]:
     return errors
 
 
+SKILL_COUNT_SOURCE = {
+    "diayn": "the skill count comes from the DIAYN checkpoint",
+    "oracle": "the oracle proposes the env's tasks, not skills; meta_batch_size sets how many",
+}
+"""The proposals that take no ``num_skills``, and where their task count comes from instead."""
+
+
+def num_skills_errors(proposal: str, num_skills: int | None, key: str = "num_skills") -> list[str]:
+    """The error of a ``num_skills`` (config key ``key``) set with a proposal that has no use for it
+    (:data:`SKILL_COUNT_SOURCE`): it would be ignored."""
+    if num_skills is None or proposal not in SKILL_COUNT_SOURCE:
+        return []
+    return [InvalidValue(key, num_skills, f"null with proposal={proposal} ({SKILL_COUNT_SOURCE[proposal]})").message()]
+
+
+def memory_errors(cfg: Mapping) -> list[str]:
+    """The meta-batch's rollouts, held together for the meta-gradient (``maml.num_inner_steps`` + 1 batches of
+    tasks x ``trajectories_per_task`` x ``env.horizon`` steps), against the memory of ``device``
+    (:mod:`umrl.configs.memory`). With ``proposal=diayn`` and a null ``meta_batch_size`` the task count is the DIAYN
+    checkpoint's, unread here: one task is counted."""
+    name, horizon, batches = cfg["env"]["name"], cfg["env"]["horizon"], cfg["maml"]["num_inner_steps"] + 1
+    tasks = cfg["meta_batch_size"] or (1 if cfg["proposal"] == "diayn" else cfg["num_skills"]
+                                       or get_env_spec(name).num_skills)
+    trajectory = tasks * horizon * batches * step_bytes(name)
+    what = f"rollouts: {tasks} tasks x {horizon} steps x {batches} batches (pre-update, after each inner step)"
+    given = f"with {tasks} tasks, env.horizon={horizon} and env.name={name}"
+    return allocation_errors([Allocation("trajectories_per_task", cfg["trajectories_per_task"], trajectory, what, given)],
+                             cfg["device"])
+
+
 def _compile_off(name: str, value) -> bool:
     """``compile`` must be false (a field check, so a suite's ``pretrain.maml.overrides`` is refused at start too)."""
     if check_bool(name, value):
@@ -117,9 +148,10 @@ class MAMLConfig(RunConfig):
         """``proposal=diayn`` needs an existing ``diayn_checkpoint``; CUDA graphs run on a CUDA device (``device`` is
         resolved here; which envs they can record is checked when the env exists, see
         :func:`umrl.rollout.check_cudagraphs`); ``trpo.hvp`` other than ``exact`` needs one inner step, and
-        ``analytic`` the batched policy (``maml.task_loop=null``)."""
+        ``analytic`` the batched policy (``maml.task_loop=null``); ``num_skills`` only with a proposal that uses it
+        (:func:`num_skills_errors`); the rollouts fit in memory (:func:`memory_errors`)."""
         errors = cudagraphs_errors(cfg["cudagraphs"], cfg["device"], "cudagraphs")
-        errors += hvp_errors(cfg)
+        errors += hvp_errors(cfg) + num_skills_errors(cfg["proposal"], cfg["num_skills"]) + memory_errors(cfg)
         if cfg["proposal"] == "diayn":
             try:
                 check_path_exists("diayn_checkpoint", cfg["diayn_checkpoint"])

@@ -2,6 +2,7 @@
 # ruff: noqa: RUF009  (the field helpers of umrl.configs.validate return dataclasses.field(...) objects)
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import partial
@@ -10,9 +11,10 @@ from string import Formatter
 from typing import Any
 
 from umrl.checkpoints import load_diayn_checkpoint, load_maml_checkpoint, load_vime_checkpoint
-from umrl.configs.common import LoggerConfig, cudagraphs_errors
+from umrl.configs.common import LoggerConfig, compile_errors, cudagraphs_errors
 from umrl.configs.diayn import DIAYNConfig
-from umrl.configs.maml import MAMLConfig
+from umrl.configs.maml import MAMLConfig, num_skills_errors
+from umrl.configs.memory import Allocation, allocation_errors, step_bytes
 from umrl.configs.validate import (
     boolean,
     check_partial,
@@ -26,13 +28,22 @@ from umrl.configs.validate import (
     number,
     number_list,
     string,
+    writable_dir,
 )
 from umrl.configs.vime import VIMEConfig
 from umrl.envs import ENV_NAMES
 from umrl.metatest.methods import METHODS, PROPOSALS, Pretraining
 from umrl.metatest.protocol import SGD_SCHEDULES
 from umrl.runtime import Checkpointer
-from umrl.validation import InvalidType, InvalidValue, check_choice, check_int, check_list, check_str
+from umrl.validation import (
+    SEED_MAX,
+    InvalidType,
+    InvalidValue,
+    check_choice,
+    check_list,
+    check_seed,
+    check_str,
+)
 
 RECIPE_SCHEMAS = {"diayn": DIAYNConfig, "maml": MAMLConfig, "vime": VIMEConfig}
 """The schema each ``pretrain.<recipe>.overrides`` is checked against."""
@@ -67,10 +78,28 @@ def check_sgd_schedule(name: str, value: Any) -> str | list[str]:
 
 
 def check_pretrain_seeds(name: str, value: Any) -> int | list[int] | None:
-    """``null`` (each meta-test seed's own), one int >= 0 (shared) or a list of ints >= 0 (one per seed)."""
+    """``null`` (each meta-test seed's own), one seed (shared) or a list of seeds (one per seed); seeds as
+    :func:`~umrl.validation.check_seed` accepts them."""
     if value is None or isinstance(value, int) and not isinstance(value, bool):
-        return value if value is None else check_int(name, value, min=0)
-    return check_list(name, value, partial(check_int, min=0), what="integers >= 0 (one per entry of seeds)")
+        return value if value is None else check_seed(name, value)
+    return check_list(name, value, check_seed, what=f"integers in [0, {SEED_MAX}] (one per entry of seeds)")
+
+
+RAY_ADDRESS = re.compile(r"(ray://)?(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):([0-9]{1,5})")
+"""``host:port`` (a cluster's GCS) or ``ray://host:port`` (Ray Client); an IPv6 host in brackets."""
+
+
+def check_ray_address(name: str, value: Any) -> str:
+    """``auto`` (the running cluster), ``local`` (start Ray here), ``host:port`` or ``ray://host:port``: the addresses
+    ``ray.init`` connects to (:data:`RAY_ADDRESS`)."""
+    expected = "'auto', 'local', host:port or ray://host:port (port 1-65535)"
+    check_str(name, value)
+    if value in ("auto", "local"):
+        return value
+    match = RAY_ADDRESS.fullmatch(value)
+    if match is None or not 1 <= int(match.group(3)) <= 65535:
+        raise InvalidValue(name, value, expected)
+    return value
 
 
 TEMPLATE_FIELDS = ("env", "seed", "proposal")
@@ -143,7 +172,7 @@ class AblationConfig:
 
     enabled: bool = boolean()
     methods: list[str] = choice_list(MAML_METHODS)
-    seeds: list[int] = int_list(min=0, unique=True)
+    seeds: list[int] = int_list(min=0, max=SEED_MAX, unique=True)
     max_checkpoints: int = integer(min=1)
     num_steps: int = integer(min=1)
 
@@ -154,7 +183,7 @@ class LauncherConfig:
 
     workers: int = integer(min=0)
     threads: int = integer(min=1)
-    ray_address: str | None = string()
+    ray_address: str | None = checked(check_ray_address)
 
 
 @dataclass
@@ -169,7 +198,7 @@ class SuiteConfig:
     profile_name: str = name()  # a folder name under outputs/suite
     envs: list[str] = choice_list(ENV_NAMES, min_len=1)
     methods: list[str] = choice_list(METHODS, min_len=1)
-    seeds: list[int] = int_list(min=0, min_len=1, unique=True)
+    seeds: list[int] = int_list(min=0, max=SEED_MAX, min_len=1, unique=True)
     pretrain_seeds: Any = checked(check_pretrain_seeds)
     num_tasks: int = integer(min=1)
     protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
@@ -183,12 +212,13 @@ class SuiteConfig:
     report: ReportConfig = field(default_factory=ReportConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     device: str = device()
-    output_dir: str = string()
+    output_dir: str = writable_dir()
 
     @staticmethod
     def cross_check(cfg: dict) -> list[str]:
         """Ablation methods among ``methods``, overrides against the recipes' schemas (DIAYN's
-        CUDA graphs against the suite's device) and every ``reuse`` run the suite would use present."""
+        CUDA graphs and torch.compile against the suite's device), a meta-test batch that fits in memory
+        (:func:`memory_errors`) and every ``reuse`` run the suite would use present."""
         errors = []
         pseeds = cfg["pretrain_seeds"]
         if isinstance(pseeds, list) and len(pseeds) != len(cfg["seeds"]):
@@ -204,11 +234,32 @@ class SuiteConfig:
             errors += check_partial(cfg["pretrain"][recipe]["overrides"], schema, f"pretrain.{recipe}.overrides.")
         diayn, maml = cfg["pretrain"]["diayn"]["overrides"], cfg["pretrain"]["maml"]["overrides"]
         if "device" not in diayn:  # the pre-training runs take the suite's device
-            errors += cudagraphs_errors(bool((diayn.get("optim") or {}).get("cudagraphs")), cfg["device"],
+            optim = diayn.get("optim") or {}
+            errors += cudagraphs_errors(bool(optim.get("cudagraphs")), cfg["device"],
                                         "pretrain.diayn.overrides.optim.cudagraphs")
+            errors += compile_errors(bool(optim.get("compile")), cfg["device"], "pretrain.diayn.overrides.optim.compile")
         if "device" not in maml:
             errors += cudagraphs_errors(bool(maml.get("cudagraphs")), cfg["device"], "pretrain.maml.overrides.cudagraphs")
-        return errors + _reuse_errors(cfg)
+        for run in needed_pretraining(cfg["methods"]):  # the MAML runs the suite trains take the overrides
+            if run.recipe == "maml" and not _reuse_template(cfg, run):
+                errors += num_skills_errors(run.proposal, maml.get("num_skills"), "pretrain.maml.overrides.num_skills")
+        return errors + memory_errors(cfg) + _reuse_errors(cfg)
+
+
+def memory_errors(cfg: Mapping) -> list[str]:
+    """One meta-test cell's batch on the largest env of ``envs`` (``num_tasks`` x ``protocol.num_trajectories`` x
+    ``protocol.horizon`` steps, or ``protocol.env_steps`` per task) against the memory of ``device``
+    (:mod:`umrl.configs.memory`); cells running at once on several workers need that much each."""
+    protocol, tasks = cfg["protocol"], cfg["num_tasks"]
+    step, horizon = max(step_bytes(env) for env in cfg["envs"]), protocol["horizon"]
+    if protocol["env_steps"] is None:
+        batch = Allocation("protocol.num_trajectories", protocol["num_trajectories"], tasks * horizon * step,
+                           f"meta-test batch: {tasks} tasks x {horizon} steps per trajectory",
+                           f"with num_tasks={tasks} and protocol.horizon={horizon}")
+    else:
+        batch = Allocation("protocol.env_steps", protocol["env_steps"], tasks * step,
+                           f"meta-test batch: {tasks} tasks", f"with num_tasks={tasks}")
+    return allocation_errors([batch], cfg["device"])
 
 
 def needed_pretraining(methods: list[str]) -> list[Pretraining]:
@@ -229,12 +280,16 @@ def pretrain_seeds(cfg: Mapping) -> list[int]:
     return [int(v) for v in value]
 
 
+def _reuse_template(cfg: Mapping, run: Pretraining) -> str | None:
+    """The ``pretrain.<recipe>.reuse`` template for ``run`` (for MAML, a mapping's entry for its proposal), or None."""
+    template = cfg["pretrain"][run.recipe]["reuse"]
+    return template.get(run.proposal) if isinstance(template, Mapping) else template
+
+
 def reuse_dir(cfg: Mapping, run: Pretraining, env: str, seed: int) -> Path | None:
     """The finished run ``pretrain.<recipe>.reuse`` names for ``run`` on (``env``, ``seed``), or None: a template with
     ``{env}``, ``{seed}``, ``{proposal}``, or for MAML a mapping from proposal to template."""
-    template = cfg["pretrain"][run.recipe]["reuse"]
-    if isinstance(template, Mapping):
-        template = template.get(run.proposal)
+    template = _reuse_template(cfg, run)
     return Path(str(template).format(env=env, seed=seed, proposal=run.proposal)).absolute() if template else None
 
 

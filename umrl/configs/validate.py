@@ -6,13 +6,16 @@ type OmegaConf enforces later and ``Optional[...]`` lets the value be ``null``; 
 groups. A schema may define ``cross_check(cfg: dict) -> list[str]`` (error lines) for rules that relate several keys; it runs
 once every key passed its own check. A schema may define ``fill_env_defaults(cfg: dict) -> None``, which replaces the
 ``null`` keys whose default depends on the env (read from its :class:`~umrl.envs.EnvSpec`) in place; it runs before
-``cross_check`` (see :func:`fill_env_defaults`). Defaults live in the yaml files, not here (every field is ``MISSING``).
+``cross_check`` (see :func:`fill_env_defaults`). A schema may define ``notices(cfg: dict) -> list[str]`` for values that
+run, but not as written (a budget rounded up, say): each line is a warning once the config passed. Defaults live in the
+yaml files, not here (every field is ``MISSING``).
 """
 from __future__ import annotations
 
 import dataclasses
 import types
 import typing
+import warnings
 from collections.abc import Callable, Collection, Iterable, Mapping
 from functools import partial
 from typing import Any
@@ -31,7 +34,9 @@ from umrl.validation import (
     check_mapping,
     check_name,
     check_path_exists,
+    check_seed,
     check_str,
+    check_writable_dir,
     resolve_device,
 )
 
@@ -97,13 +102,24 @@ def existing_path() -> Any:
     return checked(check_path_exists)
 
 
+def writable_dir() -> Any:
+    """A directory to write into, existing or not (:func:`umrl.validation.check_writable_dir`)."""
+    return checked(check_writable_dir)
+
+
+def seed() -> Any:
+    """A seed in ``[0, SEED_MAX]`` (:func:`umrl.validation.check_seed`)."""
+    return checked(check_seed)
+
+
 def mapping() -> Any:
     return checked(check_mapping)
 
 
-def int_list(*, min: int | None = None, min_len: int = 0, unique: bool = False) -> Any:
-    what = f"integers {bounds_text(ge=min)}".strip()
-    return checked(partial(check_list, item=partial(check_int, min=min), min_len=min_len, unique=unique, what=what))
+def int_list(*, min: int | None = None, max: int | None = None, min_len: int = 0, unique: bool = False) -> Any:
+    what = f"integers {bounds_text(ge=min, le=max)}".strip()
+    item = partial(check_int, min=min, max=max)
+    return checked(partial(check_list, item=item, min_len=min_len, unique=unique, what=what))
 
 
 def number_list(*, min_len: int = 0, **bounds: float) -> Any:
@@ -179,9 +195,9 @@ def validate(cfg: DictConfig | Mapping, schema: type) -> DictConfig:
     """Check every key of ``cfg`` against ``schema`` and return the config to run with.
 
     Raises :class:`ConfigError` listing every bad, missing or unexpected key (never a bare ``TypeError`` or an
-    OmegaConf dump). The returned config is ``schema`` as an OmegaConf structured config (struct mode: a later typo
-    or wrong type is refused) holding ``cfg``'s values with interpolations resolved and ``device`` resolved to
-    ``cpu``/``cuda``.
+    OmegaConf dump); warns (``UserWarning``) each of the schema's ``notices``. The returned config is ``schema`` as an
+    OmegaConf structured config (struct mode: a later typo or wrong type is refused) holding ``cfg``'s values with
+    interpolations resolved and ``device`` resolved to ``cpu``/``cuda``.
     """
     node = cfg if isinstance(cfg, DictConfig) else OmegaConf.create(dict(cfg))
     errors: list[str] = []
@@ -193,6 +209,8 @@ def validate(cfg: DictConfig | Mapping, schema: type) -> DictConfig:
         errors += cross_check(values)
     if errors:
         raise ConfigError(schema.__name__, errors)
+    for notice in getattr(schema, "notices", lambda _: [])(values):
+        warnings.warn(notice, stacklevel=2)
     return OmegaConf.merge(OmegaConf.structured(schema), values)
 
 

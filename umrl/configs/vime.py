@@ -11,6 +11,7 @@ from umrl.configs.common import (
     RunConfig,
     TRPOConfig,
 )
+from umrl.configs.memory import Allocation, allocation_errors, step_bytes
 from umrl.configs.validate import boolean, group, int_list, integer, number
 
 
@@ -71,3 +72,22 @@ class VIMEConfig(RunConfig):
     trpo: VIMETRPOConfig = group(VIMETRPOConfig)
     coverage: CoverageConfig = group(CoverageConfig)
     checkpoint: VIMECheckpointConfig = group(VIMECheckpointConfig)
+
+    @staticmethod
+    def cross_check(cfg: dict) -> list[str]:
+        """The batch and the dynamics model's data fit in memory (:func:`memory_errors`; ``device`` is resolved)."""
+        return memory_errors(cfg)
+
+
+def memory_errors(cfg: dict) -> list[str]:
+    """A batch of ``env.num_envs`` trajectories and the dynamics model's ``replay_size`` + ``holdout_size`` transitions
+    against the memory of ``device`` (:mod:`umrl.configs.memory`)."""
+    name, horizon, dyn = cfg["env"]["name"], cfg["env"]["horizon"], cfg["dynamics"]
+    transition = step_bytes(name)
+    return allocation_errors([
+        Allocation("env.num_envs", cfg["env"]["num_envs"], horizon * transition,
+                   f"{horizon}-step trajectories", f"with env.horizon={horizon} and env.name={name}"),
+        Allocation("dynamics.replay_size", dyn["replay_size"], transition, "dynamics replay", f"with env.name={name}"),
+        Allocation("dynamics.holdout_size", dyn["holdout_size"], transition, "held-out transitions",
+                   f"with env.name={name}"),
+    ], cfg["device"])
