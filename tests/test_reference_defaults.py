@@ -1,5 +1,6 @@
 """Env-dependent defaults follow the reference code: DIAYN's episode length and budget, MAML's iterations."""
 import pytest
+from omegaconf import OmegaConf
 from script_loading import compose_config
 
 from umrl.configs import validate
@@ -11,12 +12,13 @@ def recipe(name, overrides=()):
     return compose_config("umrl/configs", name, overrides)
 
 
-@pytest.mark.parametrize("env, horizon, frames", [("point_nav", 100, 50_000), ("half_cheetah", 1000, 10_000_000),
-                                                  ("ant", 1000, 10_000_000)])
+@pytest.mark.parametrize("env, horizon, frames", [("point_nav", 100, 51_200), ("half_cheetah", 1000, 10_000_000),
+                                                  ("ant", 1000, 10_000_000)])  # in whole collector batches
 def test_diayn_episode_and_budget_are_the_references(env, horizon, frames):
     cfg = validate(recipe("diayn", [f"env.name={env}"]), DIAYNConfig)
     assert (cfg.env.horizon, cfg.collector.total_frames) == (horizon, frames)
     assert cfg.collector.frames_per_batch == cfg.env.num_envs * horizon  # one episode per env copy
+    assert DIAYNConfig.notices(OmegaConf.to_container(cfg)) == []  # the default budget is not warned about
     assert (cfg.optim.lr, cfg.replay_buffer.batch_size, cfg.optim.updates_per_frame) == (3e-4, 128, 1.0)
 
 

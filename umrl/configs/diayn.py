@@ -86,14 +86,16 @@ class DIAYNConfig(RunConfig):
     @staticmethod
     def fill_env_defaults(cfg: dict) -> None:
         """Null ``env.horizon``, ``collector.total_frames`` and ``collector.frames_per_batch`` take the env's
-        reference values (see :class:`DIAYNEnvConfig` and :class:`CollectorConfig`)."""
+        reference values (see :class:`DIAYNEnvConfig` and :class:`CollectorConfig`); the reference budget is rounded
+        up to whole collector batches, as the collector runs it (point_nav's 50,000 frames: 51,200)."""
         spec, env, collector = get_env_spec(cfg["env"]["name"]), cfg["env"], cfg["collector"]
         if env["horizon"] is None:
             env["horizon"] = spec.diayn_horizon
-        if collector["total_frames"] is None:
-            collector["total_frames"] = spec.diayn_frames
         if collector["frames_per_batch"] is None:
             collector["frames_per_batch"] = env["num_envs"] * env["horizon"]
+        if collector["total_frames"] is None:
+            batch = collector["frames_per_batch"]
+            collector["total_frames"] = -(-spec.diayn_frames // batch) * batch
 
     @staticmethod
     def cross_check(cfg: dict) -> list[str]:
@@ -134,7 +136,7 @@ class DIAYNConfig(RunConfig):
     @staticmethod
     def notices(cfg: dict) -> list[str]:
         """A ``collector.total_frames`` that is not a whole number of collector batches: TorchRL's collector rounds it
-        up (the env defaults do not divide either, e.g. point_nav's 50,000 frames in batches of 1,600)."""
+        up (the env defaults are filled in whole batches)."""
         total, batch = cfg["collector"]["total_frames"], cfg["collector"]["frames_per_batch"]
         runs = -(-total // batch) * batch
         if runs == total:
