@@ -35,6 +35,7 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import RewardSum
 
 from umrl.checkpoints.diayn import DIAYN_FORMAT, check_resumable, save_diayn_checkpoint
+from umrl.checkpoints.format import check_budget_left
 from umrl.configs import RESUME_ALLOW, check_resume, validate
 from umrl.configs.diayn import DIAYNConfig
 from umrl.envs import get_env_spec, make_env
@@ -161,14 +162,13 @@ class DIAYNTrainer:
             for name, optimizer in self.optimizers.items():
                 optimizer.load_state_dict(state["optimizers"][name])
             self.counters.update(state["counters"])
+            check_budget_left("collector.total_frames", cfg.collector.total_frames, self.counters["frames"], "frames",
+                              self.output_dir)
 
         # --- data -------------------------------------------------------------------------------------
         self.env = make_skill_env(cfg, cfg.env.num_envs, num_skills, cfg.seed, self.discriminator)
         self.eval_env = make_skill_env(cfg, num_skills * cfg.eval.episodes_per_skill, num_skills, cfg.seed + 10_000)
         remaining = cfg.collector.total_frames - self.counters["frames"]
-        if remaining <= 0:
-            raise ValueError(f"nothing to do: the checkpoint already has {self.counters['frames']} frames >= "
-                             f"collector.total_frames={cfg.collector.total_frames}; raise collector.total_frames.")
         self.collector = Collector(
             self.env, self.actor, frames_per_batch=cfg.collector.frames_per_batch, total_frames=remaining,
             init_random_frames=max(0, cfg.collector.init_random_frames - self.counters["frames"]),
