@@ -18,7 +18,9 @@ A checkpoint is a dict (stored by :mod:`umrl.checkpoint_file`):
 - ``"replay"``: :func:`umrl.runtime.replay_buffer_state` (TorchRL's ``state_dict``: sampler, writer, and the storage
   cut to its filled rows);
 - ``"rng"``: :func:`umrl.runtime.rng_state` (torch, numpy, python); ``"envs"``: ``{"train", "eval"}``
-  :func:`umrl.runtime.env_state` (MuJoCo reset noise, transforms), all for a bit-identical ``resume=true``;
+  :func:`umrl.runtime.env_state` (MuJoCo reset noise, transforms); ``"collector"``: ``{"traj_pool": {"traj_id"}}``,
+  the TorchRL collector's next trajectory id (the replay's ``("collector", "traj_ids")`` continue from it; absent in
+  checkpoints written before the key), all for a bit-identical ``resume=true`` (every tensor of the checkpoint);
 - ``"config"``: the resolved recipe config (also written beside it as ``config.yaml``).
 
 Files are ``<output_dir>/checkpoints/step_<frames>.pt``; the final one of a run is the latest.
@@ -68,15 +70,17 @@ def save_diayn_checkpoint(
     replay: Mapping[str, Any],
     rng: Mapping[str, Any],
     envs: Mapping[str, Any],
+    collector: Mapping[str, Any],
     config: Any,
 ) -> Path:
     """Write the DIAYN state above as ``step_<counters["frames"]>.pt`` (``replay``, ``rng`` and ``envs`` as taken by
-    ``ReplayBuffer.state_dict``, :func:`~umrl.runtime.rng_state` and :func:`~umrl.runtime.env_state`)."""
+    ``ReplayBuffer.state_dict``, :func:`~umrl.runtime.rng_state` and :func:`~umrl.runtime.env_state`; ``collector``:
+    ``{"traj_pool": Collector.state_dict()["traj_pool"]}``)."""
     return DIAYN_FORMAT.save(
         checkpointer, counters["frames"], meta, config,
         actor=actor.state_dict(), discriminator=discriminator.state_dict(), loss=loss.state_dict(),
         optimizers={k: o.state_dict() for k, o in optimizers.items()}, counters=dict(counters),
-        replay=dict(replay), rng=dict(rng), envs=dict(envs),
+        replay=dict(replay), rng=dict(rng), envs=dict(envs), collector=dict(collector),
     )
 
 

@@ -19,8 +19,9 @@ skill centroid), the same for a uniformly random policy under ``eval/random_*`` 
 Checkpoints: ``<output_dir>/checkpoints/step_<frames>.pt`` every ``checkpoint.every`` frames and at the end, format
 ``umrl.diayn.v1`` documented in :mod:`umrl.checkpoints.diayn`; load the results with
 ``umrl.checkpoints.load_discriminator(path)`` -> (D, num_skills, obs_dim) and ``load_skill_policy(path)`` ->
-(actor, num_skills, obs_dim). ``resume=true`` restores networks, optimisers, counters, the replay buffer, every RNG and
-the envs' reset noise: the resumed run finishes bit-identical to an uninterrupted one (see :func:`train`).
+(actor, num_skills, obs_dim). ``resume=true`` restores networks, optimisers, counters, the replay buffer, every RNG,
+the envs' reset noise and the collector's trajectory counter: the resumed run finishes bit-identical to an
+uninterrupted one, in every tensor of its checkpoint (see :func:`train`).
 """
 from __future__ import annotations
 
@@ -196,28 +197,35 @@ class DIAYNTrainer:
         return self.counters["frames"] >= self.cfg.collector.total_frames
 
     def state_dict(self) -> dict:
-        """Networks (the loss's), optimisers, counters, the replay buffer, every RNG and both envs' reset noise."""
+        """Networks (the loss's), optimisers, counters, the replay buffer, every RNG, both envs' reset noise and the
+        collector's trajectory counter."""
         return {"loss": self.loss.state_dict(),
                 "optimizers": {name: opt.state_dict() for name, opt in self.optimizers.items()},
                 "counters": dict(self.counters), "replay": replay_buffer_state(self.buffer), "rng": rng_state(),
-                "envs": {"train": env_state(self.env), "eval": env_state(self.eval_env)}}
+                "envs": {"train": env_state(self.env), "eval": env_state(self.eval_env)},
+                "collector": {"traj_pool": self.collector.state_dict()["traj_pool"]}}
 
     def load_state_dict(self, state: dict) -> None:
-        """Restore the replay buffer, the envs' and RNGs' state, and restart the collector's episodes as the saved
-        run did right after saving (networks, optimisers and counters are restored at construction, before the
-        collector is built from them)."""
+        """Restore the replay buffer, the envs' and RNGs' state and the collector's trajectory counter, and restart
+        the collector's episodes as the saved run did right after saving (networks, optimisers and counters are
+        restored at construction, before the collector is built from them)."""
         load_replay_buffer_state(self.buffer, state["replay"])
         load_env_state(self.env, state["envs"]["train"])
         load_env_state(self.eval_env, state["envs"]["eval"])
         set_rng_state(state["rng"])
+        if "collector" in state:  # absent before the key: the resumed run's ("collector", "traj_ids") restart at 0
+            # the counter alone: TorchRL's Collector.load_state_dict would also reset the frame count of this
+            # collector (built for the remaining frames) and start trajectories before the reset below starts them
+            self.collector._traj_pool.load_state_dict(state["collector"]["traj_pool"])
         self.collector.reset()
 
     def checkpoint(self) -> Path:
         """Save the current state and restart the collector's episodes (what a run resumed from it does)."""
+        state = self.state_dict()
         path = save_diayn_checkpoint(
             self.checkpointer, meta=self.meta, actor=self.actor, discriminator=self.discriminator, loss=self.loss,
-            optimizers=self.optimizers, counters=self.counters, replay=replay_buffer_state(self.buffer),
-            rng=rng_state(), envs={"train": env_state(self.env), "eval": env_state(self.eval_env)}, config=self.cfg)
+            optimizers=self.optimizers, counters=self.counters, replay=state["replay"], rng=state["rng"],
+            envs=state["envs"], collector=state["collector"], config=self.cfg)
         self.collector.reset()
         return path
 
