@@ -55,7 +55,7 @@ SKILL_ENTRIES = ("actor", "discriminator", "counters")
 """What :func:`export_diayn_skills` keeps besides ``format``, ``meta`` and ``config``."""
 
 __all__ = ["DIAYN_FORMAT", "SKILL_ENTRIES", "check_resumable", "export_diayn_skills", "load_diayn_checkpoint",
-           "load_discriminator", "load_skill_policy", "save_diayn_checkpoint"]
+           "load_discriminator", "load_skill_policy", "save_diayn_checkpoint", "skill_policy"]
 
 
 def save_diayn_checkpoint(
@@ -132,7 +132,11 @@ def load_skill_policy(path: str | os.PathLike) -> tuple[ProbabilisticActor, int,
     Reads ``"observation"`` and a one-hot ``"skill"`` [*B, num_skills] (pin one with
     :meth:`~umrl.transforms.skill.SkillTransform.pin`), writes ``"action"`` and ``"action_log_prob"``.
     """
-    state = load_diayn_checkpoint(path)
+    return skill_policy(load_diayn_checkpoint(path))
+
+
+def skill_policy(state: Mapping[str, Any]) -> tuple[ProbabilisticActor, int, int]:
+    """:func:`load_skill_policy`'s ``(actor, num_skills, obs_dim)`` from a checkpoint already loaded (and checked)."""
     meta = state["meta"]
     actor = make_skill_actor(meta["obs_dim"], meta["num_skills"], meta["act_dim"], hidden=meta["hidden"])
     actor.load_state_dict(state["actor"])
