@@ -104,7 +104,8 @@ def test_a_changed_byte_is_an_error_naming_the_file_and_resume_falls_back(tmp_pa
     bad.write_bytes(bytes(data))
     with pytest.raises(CheckpointError, match=f"cannot read checkpoint {bad}.*hash mismatch"):
         checkpointer.load(bad)
-    with pytest.warns(UserWarning, match=f"skipping unreadable checkpoint {bad}"):
+    with (pytest.warns(UserWarning, match=f"skipping unreadable checkpoint {bad}"),
+          pytest.warns(UserWarning, match=f"moved the unreadable checkpoint {bad} aside")):
         path, state = checkpointer.load_latest_valid()
     assert path.name == "step_1.pt" and state["w"][1] == 1
 

@@ -58,7 +58,8 @@ def test_resume_continues_from_the_latest_checkpoint(tmp_path):
     assert second["env_steps"] == 2 * first["env_steps"]
     assert len(Checkpointer(tmp_path / "checkpoints").all()) == 3  # steps 0, 1, 2: resuming writes no second step_0
     for budget in (1, 2):  # a budget the checkpoint already reached: refused, as DIAYN and VIME refuse it
-        with pytest.raises(ValueError, match=f"nothing to do: the checkpoint is at iteration 2 >= iterations={budget}"):
+        with pytest.raises(ValueError, match=rf"iterations: got {budget} \(nothing to do: the run in {tmp_path} has "
+                                             r"already done 2 iterations\); expected > 2"):
             train(_cfg(tmp_path, f"iterations={budget}", "resume=true"))
     with pytest.raises(ValueError, match="maml.inner_lr: checkpoint has 0.1, this run has 0.2"):
         train(_cfg(tmp_path, "iterations=3", "resume=true", "maml.inner_lr=0.2"))

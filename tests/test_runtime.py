@@ -93,9 +93,11 @@ def test_unreadable_checkpoint_is_named_and_resume_falls_back(tmp_path, damage):
     bad.write_bytes({"truncated": data[: len(data) // 2], "empty": b"", "garbage": b"not a checkpoint"}[damage])
     with pytest.raises(CheckpointError, match=f"cannot read checkpoint {bad}"):
         checkpointer.load(bad)
-    with pytest.warns(UserWarning, match=f"skipping unreadable checkpoint {bad}"):
+    with (pytest.warns(UserWarning, match=f"skipping unreadable checkpoint {bad}"),
+          pytest.warns(UserWarning, match=f"moved the unreadable checkpoint {bad} aside to step_2.pt.unreadable")):
         path, state = checkpointer.load_latest_valid()
     assert path.name == "step_1.pt" and state["w"][0] == 0
+    assert checkpointer.latest() == path and bad.with_name("step_2.pt.unreadable").exists()  # what loaders read
     (tmp_path / "step_1.pt").write_bytes(b"")
     with pytest.warns(UserWarning), pytest.raises(CheckpointError, match="no readable checkpoint"):
         checkpointer.load_latest_valid()

@@ -333,8 +333,9 @@ class Checkpointer:
 
     def load_latest_valid(self) -> tuple[Path, Any]:
         """``(path, state)`` of the newest readable checkpoint, for ``resume=true``: an unreadable newer file is
-        skipped with a warning naming it; ``FileNotFoundError`` if there is none, :class:`CheckpointError` if none
-        can be read."""
+        skipped with a warning naming it and, once a readable one is found, renamed ``<name>.unreadable`` (else it
+        would stay the latest, the one loaders and the suite read); ``FileNotFoundError`` if there is none,
+        :class:`CheckpointError` if none can be read (nothing is renamed then)."""
         self._remove_stale_tmp()
         found = self.all()
         if not found:
@@ -347,6 +348,10 @@ class Checkpointer:
                 errors.append(str(e))
                 warnings.warn(f"skipping unreadable checkpoint {path}; trying the previous one. ({e})", stacklevel=2)
                 continue
+            for skipped in found[found.index(path) + 1:]:
+                skipped.rename(skipped.with_name(skipped.name + ".unreadable"))
+                warnings.warn(f"moved the unreadable checkpoint {skipped} aside to {skipped.name}.unreadable; "
+                              f"resuming from {path}.", stacklevel=2)
             return path, state
         raise CheckpointError("no readable checkpoint in " f"{self.directory}:\n" + "\n".join(errors))
 

@@ -9,7 +9,9 @@ VIME    recipes/vime.py     :func:`load_vime_checkpoint`, :func:`load_vime_polic
 ======  ==================  ==========================================================================
 
 Every loader accepts a ``step_*.pt`` file, a ``checkpoints/`` folder or a run's output_dir (the latest checkpoint),
-and raises ``ValueError`` for a file of another format (:class:`~umrl.checkpoints.format.CheckpointFormat`). Files are
+and raises ``ValueError`` for a file of another format (:class:`~umrl.checkpoints.format.CheckpointFormat`, whose
+``check_run`` also refuses a run of another env or proposal than a caller expects); :func:`maml_policy`,
+:func:`skill_policy` and :func:`vime_policy` build the policies from a checkpoint already loaded. Files are
 :mod:`umrl.checkpoint_file`'s: tensors as data, a JSON tree and a content hash, so loading one runs no code and a
 changed byte is an error naming the file; the torch.save pickles of older umrl versions are refused and convert with
 ``python -m umrl.checkpoints.convert OLD NEW`` (:mod:`umrl.checkpoints.convert`; trusted files only: it unpickles).
@@ -23,15 +25,23 @@ from umrl.checkpoints.diayn import (
     load_discriminator,
     load_skill_policy,
     save_diayn_checkpoint,
+    skill_policy,
 )
 from umrl.checkpoints.format import CheckpointFormat
-from umrl.checkpoints.maml import MAML_FORMAT, load_maml_checkpoint, load_maml_policy, save_maml_checkpoint
+from umrl.checkpoints.maml import (
+    MAML_FORMAT,
+    load_maml_checkpoint,
+    load_maml_policy,
+    maml_policy,
+    save_maml_checkpoint,
+)
 from umrl.checkpoints.vime import (
     VIME_FORMAT,
     load_vime_checkpoint,
     load_vime_dynamics,
     load_vime_policy,
     save_vime_checkpoint,
+    vime_policy,
 )
 
 __all__ = [
@@ -48,7 +58,10 @@ __all__ = [
     "load_vime_checkpoint",
     "load_vime_dynamics",
     "load_vime_policy",
+    "maml_policy",
     "save_diayn_checkpoint",
     "save_maml_checkpoint",
     "save_vime_checkpoint",
+    "skill_policy",
+    "vime_policy",
 ]

@@ -18,7 +18,9 @@ A checkpoint is a dict (stored by :mod:`umrl.checkpoint_file`):
 - ``"replay"``: :func:`umrl.runtime.replay_buffer_state` (TorchRL's ``state_dict``: sampler, writer, and the storage
   cut to its filled rows);
 - ``"rng"``: :func:`umrl.runtime.rng_state` (torch, numpy, python); ``"envs"``: ``{"train", "eval"}``
-  :func:`umrl.runtime.env_state` (MuJoCo reset noise, transforms), all for a bit-identical ``resume=true``;
+  :func:`umrl.runtime.env_state` (MuJoCo reset noise, transforms); ``"collector"``: ``{"traj_pool": {"traj_id"}}``,
+  the TorchRL collector's next trajectory id (the replay's ``("collector", "traj_ids")`` continue from it; absent in
+  checkpoints written before the key), all for a bit-identical ``resume=true`` (every tensor of the checkpoint);
 - ``"config"``: the resolved recipe config (also written beside it as ``config.yaml``).
 
 Files are ``<output_dir>/checkpoints/step_<frames>.pt``; the final one of a run is the latest.
@@ -53,7 +55,7 @@ SKILL_ENTRIES = ("actor", "discriminator", "counters")
 """What :func:`export_diayn_skills` keeps besides ``format``, ``meta`` and ``config``."""
 
 __all__ = ["DIAYN_FORMAT", "SKILL_ENTRIES", "check_resumable", "export_diayn_skills", "load_diayn_checkpoint",
-           "load_discriminator", "load_skill_policy", "save_diayn_checkpoint"]
+           "load_discriminator", "load_skill_policy", "save_diayn_checkpoint", "skill_policy"]
 
 
 def save_diayn_checkpoint(
@@ -68,15 +70,17 @@ def save_diayn_checkpoint(
     replay: Mapping[str, Any],
     rng: Mapping[str, Any],
     envs: Mapping[str, Any],
+    collector: Mapping[str, Any],
     config: Any,
 ) -> Path:
     """Write the DIAYN state above as ``step_<counters["frames"]>.pt`` (``replay``, ``rng`` and ``envs`` as taken by
-    ``ReplayBuffer.state_dict``, :func:`~umrl.runtime.rng_state` and :func:`~umrl.runtime.env_state`)."""
+    ``ReplayBuffer.state_dict``, :func:`~umrl.runtime.rng_state` and :func:`~umrl.runtime.env_state`; ``collector``:
+    ``{"traj_pool": Collector.state_dict()["traj_pool"]}``)."""
     return DIAYN_FORMAT.save(
         checkpointer, counters["frames"], meta, config,
         actor=actor.state_dict(), discriminator=discriminator.state_dict(), loss=loss.state_dict(),
         optimizers={k: o.state_dict() for k, o in optimizers.items()}, counters=dict(counters),
-        replay=dict(replay), rng=dict(rng), envs=dict(envs),
+        replay=dict(replay), rng=dict(rng), envs=dict(envs), collector=dict(collector),
     )
 
 
@@ -128,7 +132,11 @@ def load_skill_policy(path: str | os.PathLike) -> tuple[ProbabilisticActor, int,
     Reads ``"observation"`` and a one-hot ``"skill"`` [*B, num_skills] (pin one with
     :meth:`~umrl.transforms.skill.SkillTransform.pin`), writes ``"action"`` and ``"action_log_prob"``.
     """
-    state = load_diayn_checkpoint(path)
+    return skill_policy(load_diayn_checkpoint(path))
+
+
+def skill_policy(state: Mapping[str, Any]) -> tuple[ProbabilisticActor, int, int]:
+    """:func:`load_skill_policy`'s ``(actor, num_skills, obs_dim)`` from a checkpoint already loaded (and checked)."""
     meta = state["meta"]
     actor = make_skill_actor(meta["obs_dim"], meta["num_skills"], meta["act_dim"], hidden=meta["hidden"])
     actor.load_state_dict(state["actor"])

@@ -14,8 +14,17 @@ from typing import Any
 
 from umrl.envs.registry import ENV_NAMES, check_observation_size
 from umrl.runtime import Checkpointer, read_checkpoint, resolve_checkpoint, to_container
+from umrl.validation import InvalidValue
 
-__all__ = ["CheckpointFormat"]
+__all__ = ["CheckpointFormat", "check_budget_left"]
+
+
+def check_budget_left(key: str, budget: int, done: int, unit: str, run_dir: str | os.PathLike) -> None:
+    """Refuse a ``resume=true`` whose budget (config key ``key``, in ``unit``) is not beyond the ``done`` the run in
+    ``run_dir`` has already done: there is nothing left to do, and a smaller budget cannot undo what was done."""
+    if budget <= done:
+        raise InvalidValue(key, budget, f"> {done} to continue it with resume=true",
+                           note=f"nothing to do: the run in {run_dir} has already done {done} {unit}")
 
 
 @dataclass(frozen=True)
@@ -52,6 +61,19 @@ class CheckpointFormat:
         meta = state.get("meta") or {}
         if meta.get("env") in ENV_NAMES:
             check_observation_size(meta["env"], meta.get("obs_dim"), f"{self.what} checkpoint {source}")
+        return state
+
+    def check_run(self, state: dict, name: str, source: str | os.PathLike, why: str, **expected: Any) -> dict:
+        """Return ``state`` if its ``meta`` holds the ``expected`` values (``env="point_nav"``, ``proposal="diayn"``),
+        else :class:`~umrl.validation.InvalidValue` naming argument ``name`` (its value ``source``), what the
+        checkpoint holds and, in ``why``, who expects the rest: a checkpoint of another env or proposal is refused
+        before any work (on another env it would fail in a matmul, or on another proposal run silently)."""
+        found = {key: state["meta"].get(key) for key in expected}
+        if found != expected:
+            def run(values: Mapping[str, Any]) -> str:
+                return f"a {self.what} run with " + ", ".join(f"{k}={v!r}" for k, v in values.items())
+
+            raise InvalidValue(name, str(source), f"{run(expected)} ({why})", note=run(found))
         return state
 
     def load(self, path: str | os.PathLike) -> dict:

@@ -35,7 +35,7 @@ MAML_FORMAT = CheckpointFormat(
                "first_order", "num_tasks", "trajectories_per_task", "horizon", "num_skills"),
 )
 
-__all__ = ["MAML_FORMAT", "load_maml_checkpoint", "load_maml_policy", "save_maml_checkpoint"]
+__all__ = ["MAML_FORMAT", "load_maml_checkpoint", "load_maml_policy", "maml_policy", "save_maml_checkpoint"]
 
 
 def save_maml_checkpoint(
@@ -63,7 +63,11 @@ def load_maml_checkpoint(path: str | os.PathLike) -> dict:
 
 def load_maml_policy(path: str | os.PathLike) -> tuple[ProbabilisticActor, float]:
     """``(policy, inner_lr)``: the meta-trained Gaussian policy and the SGD step size it was meta-trained for."""
-    state = load_maml_checkpoint(path)
+    return maml_policy(load_maml_checkpoint(path))
+
+
+def maml_policy(state: Mapping[str, Any]) -> tuple[ProbabilisticActor, float]:
+    """:func:`load_maml_policy`'s ``(policy, inner_lr)`` from a checkpoint already loaded (and checked)."""
     meta = state["meta"]
     policy = make_gaussian_policy(meta["obs_dim"], meta["act_dim"], hidden=meta["hidden"], init_std=meta["init_std"])
     policy.load_state_dict(state["policy"])

@@ -40,7 +40,8 @@ VIME_FORMAT = CheckpointFormat(
                "likelihood_std"),
 )
 
-__all__ = ["VIME_FORMAT", "load_vime_checkpoint", "load_vime_dynamics", "load_vime_policy", "save_vime_checkpoint"]
+__all__ = ["VIME_FORMAT", "load_vime_checkpoint", "load_vime_dynamics", "load_vime_policy", "save_vime_checkpoint",
+           "vime_policy"]
 
 
 def save_vime_checkpoint(
@@ -82,7 +83,12 @@ def load_vime_policy(path: str | os.PathLike) -> ProbabilisticActor:
     Reads ``"observation"``, writes ``"loc"``, ``"scale"``, ``"action"`` and ``"action_log_prob"``, exactly like
     :func:`umrl.modules.policy.make_gaussian_policy`.
     """
-    meta = (state := load_vime_checkpoint(path))["meta"]
+    return vime_policy(load_vime_checkpoint(path))
+
+
+def vime_policy(state: Mapping[str, Any]) -> ProbabilisticActor:
+    """:func:`load_vime_policy`'s policy from a checkpoint already loaded (and checked)."""
+    meta = state["meta"]
     policy = make_gaussian_policy(meta["obs_dim"], meta["act_dim"], hidden=meta["policy_hidden"],
                                   init_std=meta["policy_init_std"])
     policy.load_state_dict(state["policy"])

@@ -18,6 +18,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
+from umrl.checkpoints import DIAYN_FORMAT, MAML_FORMAT, VIME_FORMAT, maml_policy, skill_policy, vime_policy
 from umrl.envs import get_env_spec
 from umrl.envs.tasks import get_task_family
 from umrl.metatest.cache import write_json_atomic
@@ -150,18 +151,16 @@ def _load_initialisation(method: str, env_name: str, checkpoint: str | os.PathLi
         return Initialisation(make_gaussian_policy(env.obs_dim, env.act_dim), spec.optimizer)
     if checkpoint is None:
         raise ValueError(f"method {method!r} needs the checkpoint of its {pretraining.kind} pre-training.")
+    recipe_format = {"diayn": DIAYN_FORMAT, "maml": MAML_FORMAT, "vime": VIME_FORMAT}[pretraining.recipe]
+    proposal = {} if pretraining.proposal is None else {"proposal": pretraining.proposal}
+    state = recipe_format.check_run(recipe_format.load(checkpoint), "checkpoint", checkpoint,
+                                    f"method {method!r} on {env_name}", env=env_name, **proposal)
     if pretraining.recipe == "vime":
-        from umrl.checkpoints import load_vime_policy
-
-        return Initialisation(load_vime_policy(checkpoint), spec.optimizer)
+        return Initialisation(vime_policy(state), spec.optimizer)
     if pretraining.recipe == "diayn":
-        from umrl.checkpoints import load_skill_policy
-
-        actor, num_skills, _ = load_skill_policy(checkpoint)
+        actor, num_skills, _ = skill_policy(state)
         return Initialisation(actor, spec.optimizer, num_skills=num_skills)
-    from umrl.checkpoints import load_maml_policy
-
-    policy, inner_lr = load_maml_policy(checkpoint)
+    policy, inner_lr = maml_policy(state)
     return Initialisation(policy, spec.optimizer, lr=inner_lr)
 
 

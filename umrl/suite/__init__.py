@@ -6,15 +6,17 @@ for a suite config (``benchmarks/suite.py`` is its command line, with the config
 0. **Validation**: the config is checked against :class:`umrl.configs.suite.SuiteConfig` and every recipe config
    the suite will run is composed (``umrl.trainers.compose``) and checked against its schema, so every bad key or value
    is listed before any work starts.
-1. **Pre-training** (jobs): DIAYN, VIME and MAML with each proposal (diayn after its DIAYN run), each
+1. **Pre-training** (jobs): DIAYN, VIME and MAML with each proposal (diayn after its DIAYN run, which is not trained
+   when only reused UML-DIAYN runs would read it), each
    ``umrl.trainers.<recipe>.train(cfg)`` in a worker process, its config composed from the recipe's own yaml with the
    suite's settings and ``pretrain.<recipe>.overrides``. Each run lives in
    ``pretrain/<kind>/<env>/seed<s>-<key>/``, ``<key>`` a hash of its resolved config and the code version
    (:mod:`umrl.metatest.cache`): a finished run (marker ``suite_complete``, or a checkpoint at the final step) is
    reused, a killed one resumes from its last checkpoint, a changed config or code gets a new run.
    ``pretrain.<recipe>.reuse`` points at existing runs instead (path templates with ``{env}``, ``{seed}``,
-   ``{proposal}``). Meta-test seed ``seeds[i]`` uses the runs of pre-training seed ``pretrain_seeds[i]`` (null: the
-   same seed, independent pre-training per seed).
+   ``{proposal}``; a ``num_skills`` override such a run was not trained with is refused). Meta-test seed
+   ``seeds[i]`` uses the runs of pre-training seed ``pretrain_seeds[i]`` (null: the same seed, independent
+   pre-training per seed).
 2. **Meta-test cells**: each (method, env, seed) -- and, for the SGD methods, each ``protocol.sgd_schedule`` -- is
    an independent job running :func:`umrl.metatest.run_cell` on a typed :class:`umrl.metatest.CellSpec`; its CSV
    ``cells/<env>/<method>/seed<s>[.<schedule>]-<key>.csv`` (key: the spec, its checkpoint and the code version)

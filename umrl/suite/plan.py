@@ -17,6 +17,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 import umrl.trainers
+from umrl.checkpoints import DIAYN_FORMAT, MAML_FORMAT, VIME_FORMAT
 from umrl.configs import ConfigError
 from umrl.configs.maml import hvp_errors
 from umrl.configs.suite import RECIPE_SCHEMAS, needed_pretraining, pretrain_seeds, reuse_dir
@@ -25,9 +26,13 @@ from umrl.launch import Job
 from umrl.metatest import CellSpec, Pretraining, cell_finished, default_lr_schedule, get_method, run_cell
 from umrl.metatest.cache import config_key, keyed_config, mark_done, run_finished
 from umrl.runtime import Checkpointer, to_container
+from umrl.validation import InvalidValue
 
 __all__ = ["BUDGET_KEYS", "PretrainRun", "cell_spec", "checkpoint_identity", "hydra_overrides", "keyed_cell", "plan",
            "plan_ablation", "plan_pretraining", "pretrain_key", "sgd_schedules"]
+
+RUN_FORMATS = {"diayn": DIAYN_FORMAT, "maml": MAML_FORMAT, "vime": VIME_FORMAT}
+"""Each recipe's checkpoint format (a reused run's ``meta`` is read with it)."""
 
 BUDGET_KEYS = {"diayn": "collector.total_frames", "maml": "iterations", "vime": "iterations"}
 """Each recipe's total budget, in the unit of its checkpoints' step numbers (``step_<N>.pt``: env frames for DIAYN,
@@ -121,11 +126,40 @@ def _suite_overrides(cfg: DictConfig, run: Pretraining, env: str, seed: int, gro
         cfg.pretrain[run.recipe].get("overrides") or {})
 
 
-def plan_pretraining(cfg: DictConfig, group: str, code: str) -> dict[tuple[str, str, int], PretrainRun]:
-    """Every pre-training run the config needs, ``(kind, env, seed) -> PretrainRun``, runs before those that read them.
+def _used(cfg: DictConfig, run: Pretraining, env: str, seed: int) -> bool:
+    """Whether ``run`` on (``env``, ``seed``) is used: a method starts from it, or a run the suite trains reads it (a
+    DIAYN run read only by reused UML-DIAYN runs is not)."""
+    starts = {get_method(name).pretraining for name in cfg.methods} - {None}
+    return run in starts or any(run in other.requires and reuse_dir(cfg, other, env, seed) is None for other in starts)
 
-    Each recipe config is composed with ``umrl.trainers.compose`` and checked against its schema here, so a renamed or
-    misspelt key or a bad value fails before any work (:class:`~umrl.configs.ConfigError` listing every problem).
+
+def _reused_skill_errors(cfg: DictConfig, run: Pretraining, run_dir: Path) -> list[str]:
+    """A reused run is used as it is: a ``pretrain.<recipe>.overrides.num_skills`` that would set its skill count
+    (DIAYN's for DIAYN and UML-DIAYN runs, MAML's for the random proposals' discriminators) must be its checkpoint's."""
+    if Pretraining("diayn") in (run, *run.requires):
+        recipe = "diayn"
+    elif run.proposal in ("random", "random_arena"):
+        recipe = "maml"
+    else:
+        return []
+    wanted = (cfg.pretrain[recipe].overrides or {}).get("num_skills")
+    if wanted is None:
+        return []
+    trained = RUN_FORMATS[run.recipe].load(run_dir)["meta"]["num_skills"]
+    if wanted == trained:
+        return []
+    return [InvalidValue(f"pretrain.{recipe}.overrides.num_skills", wanted, f"{trained} or no override",
+                         note=f"the reused {run.kind} run in {run_dir} (pretrain.{run.recipe}.reuse) has {trained} "
+                              "skills and is used as it is").message()]
+
+
+def plan_pretraining(cfg: DictConfig, group: str, code: str) -> dict[tuple[str, str, int], PretrainRun]:
+    """Every pre-training run the config uses, ``(kind, env, seed) -> PretrainRun``, runs before those that read them
+    (a DIAYN run only reused UML-DIAYN runs would read is left out).
+
+    A ``reuse`` run is taken as it is; a ``num_skills`` override it was not trained with is refused. Each recipe
+    config is composed with ``umrl.trainers.compose`` and checked against its schema here, so a renamed or misspelt
+    key or a bad value fails before any work (:class:`~umrl.configs.ConfigError` listing every problem).
     """
     runs: dict[tuple[str, str, int], PretrainRun] = {}
     errors: list[str] = []
@@ -133,8 +167,11 @@ def plan_pretraining(cfg: DictConfig, group: str, code: str) -> dict[tuple[str, 
     for env in cfg.envs:
         for seed in sorted(set(pretrain_seeds(cfg))):
             for run in ordered:
+                if not _used(cfg, run, env, seed):
+                    continue
                 reuse = reuse_dir(cfg, run, env, seed)
                 if reuse is not None:
+                    errors += _reused_skill_errors(cfg, run, reuse)
                     runs[run.kind, env, seed] = PretrainRun(run, env, seed, reuse)
                     continue
                 overrides = _suite_overrides(cfg, run, env, seed, group, runs)
@@ -169,8 +206,9 @@ def plan_pretraining(cfg: DictConfig, group: str, code: str) -> dict[tuple[str, 
 
 def _pretrain_job(cfg: DictConfig, run: PretrainRun) -> Job:
     log = Path(cfg.output_dir).absolute() / "logs" / f"pretrain_{run.run.kind}_{run.env}_seed{run.seed}.log"
+    deps = () if run.reused else tuple(pretrain_key(r, run.env, run.seed) for r in run.run.requires)
     return Job(key=pretrain_key(run.run, run.env, run.seed), fn=umrl.trainers.train, args=(run.run.recipe, list(run.overrides)),
-               deps=tuple(pretrain_key(r, run.env, run.seed) for r in run.run.requires), done=run.done,
+               deps=deps, done=run.done,
                on_success=(lambda: None) if run.reused else (lambda: mark_done(run.run_dir)),
                what=run.describe(), log=log, fresh=True)
 
@@ -222,10 +260,9 @@ def plan(cfg: DictConfig, group: str, code: str = "", runs: Mapping | None = Non
             for method in map(get_method, cfg.methods):
                 pretraining, deps, checkpoint, checkpoint_id = method.pretraining, (), None, None
                 if pretraining is not None:
-                    for needed in (*pretraining.requires, pretraining):
-                        run = runs[needed.kind, env, pseed]
-                        jobs.setdefault(pretrain_key(needed, env, pseed), _pretrain_job(cfg, run))
                     run = runs[pretraining.kind, env, pseed]
+                    for needed in (*(() if run.reused else pretraining.requires), pretraining):
+                        jobs.setdefault(pretrain_key(needed, env, pseed), _pretrain_job(cfg, runs[needed.kind, env, pseed]))
                     deps, checkpoint = (pretrain_key(pretraining, env, pseed),), str(run.run_dir)
                     checkpoint_id = checkpoint_identity(run, checkpoint)
                 for schedule in _cell_schedules(cfg, method.name):

@@ -19,8 +19,9 @@ skill centroid), the same for a uniformly random policy under ``eval/random_*`` 
 Checkpoints: ``<output_dir>/checkpoints/step_<frames>.pt`` every ``checkpoint.every`` frames and at the end, format
 ``umrl.diayn.v1`` documented in :mod:`umrl.checkpoints.diayn`; load the results with
 ``umrl.checkpoints.load_discriminator(path)`` -> (D, num_skills, obs_dim) and ``load_skill_policy(path)`` ->
-(actor, num_skills, obs_dim). ``resume=true`` restores networks, optimisers, counters, the replay buffer, every RNG and
-the envs' reset noise: the resumed run finishes bit-identical to an uninterrupted one (see :func:`train`).
+(actor, num_skills, obs_dim). ``resume=true`` restores networks, optimisers, counters, the replay buffer, every RNG,
+the envs' reset noise and the collector's trajectory counter: the resumed run finishes bit-identical to an
+uninterrupted one, in every tensor of its checkpoint (see :func:`train`).
 """
 from __future__ import annotations
 
@@ -35,6 +36,7 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import RewardSum
 
 from umrl.checkpoints.diayn import DIAYN_FORMAT, check_resumable, save_diayn_checkpoint
+from umrl.checkpoints.format import check_budget_left
 from umrl.configs import RESUME_ALLOW, check_resume, validate
 from umrl.configs.diayn import DIAYNConfig
 from umrl.envs import get_env_spec, make_env
@@ -161,14 +163,13 @@ class DIAYNTrainer:
             for name, optimizer in self.optimizers.items():
                 optimizer.load_state_dict(state["optimizers"][name])
             self.counters.update(state["counters"])
+            check_budget_left("collector.total_frames", cfg.collector.total_frames, self.counters["frames"], "frames",
+                              self.output_dir)
 
         # --- data -------------------------------------------------------------------------------------
         self.env = make_skill_env(cfg, cfg.env.num_envs, num_skills, cfg.seed, self.discriminator)
         self.eval_env = make_skill_env(cfg, num_skills * cfg.eval.episodes_per_skill, num_skills, cfg.seed + 10_000)
         remaining = cfg.collector.total_frames - self.counters["frames"]
-        if remaining <= 0:
-            raise ValueError(f"nothing to do: the checkpoint already has {self.counters['frames']} frames >= "
-                             f"collector.total_frames={cfg.collector.total_frames}; raise collector.total_frames.")
         self.collector = Collector(
             self.env, self.actor, frames_per_batch=cfg.collector.frames_per_batch, total_frames=remaining,
             init_random_frames=max(0, cfg.collector.init_random_frames - self.counters["frames"]),
@@ -196,28 +197,35 @@ class DIAYNTrainer:
         return self.counters["frames"] >= self.cfg.collector.total_frames
 
     def state_dict(self) -> dict:
-        """Networks (the loss's), optimisers, counters, the replay buffer, every RNG and both envs' reset noise."""
+        """Networks (the loss's), optimisers, counters, the replay buffer, every RNG, both envs' reset noise and the
+        collector's trajectory counter."""
         return {"loss": self.loss.state_dict(),
                 "optimizers": {name: opt.state_dict() for name, opt in self.optimizers.items()},
                 "counters": dict(self.counters), "replay": replay_buffer_state(self.buffer), "rng": rng_state(),
-                "envs": {"train": env_state(self.env), "eval": env_state(self.eval_env)}}
+                "envs": {"train": env_state(self.env), "eval": env_state(self.eval_env)},
+                "collector": {"traj_pool": self.collector.state_dict()["traj_pool"]}}
 
     def load_state_dict(self, state: dict) -> None:
-        """Restore the replay buffer, the envs' and RNGs' state, and restart the collector's episodes as the saved
-        run did right after saving (networks, optimisers and counters are restored at construction, before the
-        collector is built from them)."""
+        """Restore the replay buffer, the envs' and RNGs' state and the collector's trajectory counter, and restart
+        the collector's episodes as the saved run did right after saving (networks, optimisers and counters are
+        restored at construction, before the collector is built from them)."""
         load_replay_buffer_state(self.buffer, state["replay"])
         load_env_state(self.env, state["envs"]["train"])
         load_env_state(self.eval_env, state["envs"]["eval"])
         set_rng_state(state["rng"])
+        if "collector" in state:  # absent before the key: the resumed run's ("collector", "traj_ids") restart at 0
+            # the counter alone: TorchRL's Collector.load_state_dict would also reset the frame count of this
+            # collector (built for the remaining frames) and start trajectories before the reset below starts them
+            self.collector._traj_pool.load_state_dict(state["collector"]["traj_pool"])
         self.collector.reset()
 
     def checkpoint(self) -> Path:
         """Save the current state and restart the collector's episodes (what a run resumed from it does)."""
+        state = self.state_dict()
         path = save_diayn_checkpoint(
             self.checkpointer, meta=self.meta, actor=self.actor, discriminator=self.discriminator, loss=self.loss,
-            optimizers=self.optimizers, counters=self.counters, replay=replay_buffer_state(self.buffer),
-            rng=rng_state(), envs={"train": env_state(self.env), "eval": env_state(self.eval_env)}, config=self.cfg)
+            optimizers=self.optimizers, counters=self.counters, replay=state["replay"], rng=state["rng"],
+            envs=state["envs"], collector=state["collector"], config=self.cfg)
         self.collector.reset()
         return path
 

@@ -39,6 +39,7 @@ import tqdm
 from omegaconf import DictConfig
 
 from umrl.checkpoints import MAML_FORMAT, save_maml_checkpoint
+from umrl.checkpoints.format import check_budget_left
 from umrl.configs import check_resume, validate
 from umrl.configs.maml import MAMLConfig
 from umrl.modules.policy import make_gaussian_policy, policy_log_std
@@ -220,9 +221,7 @@ class MAMLTrainer:
                  if cfg.resume else None)
         if state is not None:
             self.load_state_dict(state)
-            if self.done:  # as DIAYN and VIME: a resume with nothing to do is a mistake
-                raise ValueError(f"nothing to do: the checkpoint is at iteration {self.iteration} >= "
-                                 f"iterations={cfg.iterations}; raise iterations.")
+            check_budget_left("iterations", cfg.iterations, self.iteration, "iterations", self.output_dir)
         else:
             self.save()
         self.logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, config=cfg, log_dir=self.output_dir)

@@ -38,6 +38,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyTensorStorage, ReplayBuffer, TensorDictReplayBuffer
 
 from umrl.checkpoints import VIME_FORMAT, save_vime_checkpoint
+from umrl.checkpoints.format import check_budget_left
 from umrl.configs import check_resume, validate
 from umrl.configs.vime import VIMEConfig
 from umrl.envs import get_env_spec, make_env
@@ -162,9 +163,7 @@ class VIMETrainer:
                  if cfg.resume else None)
         if state is not None:
             self.load_state_dict(state)
-        if self.counters["iteration"] >= cfg.iterations:
-            raise ValueError(f"nothing to do: the checkpoint is at iteration {self.counters['iteration']} >= "
-                             f"iterations={cfg.iterations}; raise iterations.")
+            check_budget_left("iterations", cfg.iterations, self.counters["iteration"], "iterations", self.output_dir)
         self.logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, config=cfg, log_dir=self.output_dir)
         self.start_time = time.perf_counter()
 
