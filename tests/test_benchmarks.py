@@ -337,3 +337,28 @@ def test_run_options_refuse_a_value_without_label_and_path(script, spec, capsys)
     with pytest.raises(SystemExit):
         load_script(script).main(["--run", spec])
     assert f"--run: got {spec!r}; expected LABEL=PATH" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("expect, returncode, output, kind", [
+    ("refuse", 1, "Traceback\nValueError: seed: got 1e99; expected an integer", "clear"),
+    ("refuse", 1, "Traceback\nIndexError: tuple index out of range", "obscure"),
+    ("refuse", None, "", "obscure"),  # past the time limit
+    ("refuse", 0, "done", "silent"),
+    ("warn", 0, "UserWarning: collector.total_frames: got 100 (...); expected a multiple", "clear"),
+    ("warn", 0, "done", "silent"),
+    ("run", 0, "done", "clear"),
+    ("run", 1, "IndexError: tuple index out of range", "obscure"),
+])
+def test_bad_input_probe_sorts_outcomes(expect, returncode, output, kind):
+    from script_loading import load_script
+
+    assert load_script("scripts/diagnostics/bad_inputs.py").verdict(expect, returncode, output)[0] == kind
+
+
+def test_bad_input_probe_runs_a_case_in_a_fresh_process(tmp_path):
+    from script_loading import load_script
+
+    probe = load_script("scripts/diagnostics/bad_inputs.py")
+    case = next(case for case in probe.CASES if case.label == "make_task_env with a list")
+    kind, line = probe.verdict(case.expect, *probe.run(case.argv, str(tmp_path), 120)[:2])
+    assert (kind, line.split(":")[0]) == ("clear", "tasks")

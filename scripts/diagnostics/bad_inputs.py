@@ -7,7 +7,8 @@ Each case runs in a fresh ``python`` process (a recipe or suite command line, or
 in a temporary directory; a few small runs made first give the cases a real MAML and DIAYN checkpoint to misuse.
 A case expects one of three outcomes, and is
 
-- **clear** when it got it: ``refuse`` exits non-zero with a line in umrl's format (``<key>: got …; expected …``);
+- **clear** when it got it: ``refuse`` exits non-zero with a line in umrl's format (``<key>: got …; expected …``, or
+  a checkpoint's ``cannot read checkpoint <path> (<size> bytes): <why>``);
   ``warn`` exits 0 having printed such a line; ``run`` exits 0 (a legal value that used to crash);
 - **obscure** when it exits non-zero without such a line, or runs past the time limit;
 - **silent** when a ``refuse`` or ``warn`` case exits 0 without a word in that format.
@@ -31,7 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
-MESSAGE = re.compile(r"\S: got .*; expected ")
+MESSAGE = re.compile(r"\S: got .*; expected |cannot read checkpoint \S+ \(\d+ bytes\): ")  # a checkpoint's own errors
 MAML_TINY = ["+profile=maml_tiny", "iterations=2", "logger.backend=none", "progress=false"]
 DIAYN_TINY = ["+profile=diayn_tiny", "logger.backend=none", "progress=false"]
 VIME_TINY = ["+profile=vime_tiny", "iterations=1", "logger.backend=none", "progress=false"]
@@ -85,6 +86,7 @@ CASES = [
     recipe("maml", "advantage.lmbda=0", expect="run"),
     recipe("vime", "trpo.gamma=0", expect="run"),
     recipe("vime", "trpo.gae_lambda=0", expect="run"),
+    suite("protocol.gamma=0", "protocol.lmbda=0", expect="run"),
     recipe("maml", "seed=99999999999999999999"),
     recipe("diayn", "seed=99999999999999999999"),
     recipe("maml", "maml.inner_lr=1e30"),
@@ -110,7 +112,7 @@ CASES = [
     suite("methods=[diayn_init]", "pretrain.diayn.reuse='runs/{{seed.__class__.__mro__}}'"),
     # checkpoints of another env or method, resumes that cannot continue
     suite("methods=[uml_diayn]", "pretrain.maml.reuse='{tmp}/oracle'"),
-    suite("methods=[diayn_init]", "pretrain.diayn.reuse='{tmp}/diayn'", "+pretrain.diayn.overrides.num_skills=3"),
+    suite("methods=[diayn_init]", "pretrain.diayn.reuse='{tmp}/diayn'", "++pretrain.diayn.overrides.num_skills=7"),
     recipe("maml", "proposal=oracle", "resume=true", "iterations=1", "output_dir={tmp}/oracle",
            label="maml resume=true iterations=1 of a 2-iteration run"),
     snippet("run_cell(uml_diayn) of an oracle run", """
@@ -125,7 +127,7 @@ CASES = [
     snippet("a checkpoint with 64 bytes zeroed", """
         import glob
         from umrl.checkpoints import load_maml_policy
-        path = sorted(glob.glob("{tmp}/oracle/checkpoints/step_1.pt"))[0]
+        path = sorted(glob.glob("{tmp}/oracle/checkpoints/step_*.pt"))[-1]
         data = bytearray(open(path, "rb").read()); mid = len(data) // 2; data[mid:mid + 64] = bytes(64)
         open("{tmp}/zeroed.pt", "wb").write(data)
         load_maml_policy("{tmp}/zeroed.pt")"""),
@@ -200,7 +202,7 @@ def run(argv: tuple[str, ...], tmp: str, timeout: float) -> tuple[int | None, st
 def verdict(expect: str, returncode: int | None, output: str) -> tuple[str, str]:
     """``(clear | obscure | silent, the line that decided it)`` of one case's outcome."""
     lines = [line.strip() for line in output.splitlines() if line.strip()]
-    said = next((line for line in lines if MESSAGE.search(line)), "")
+    said = next((line for line in reversed(lines) if MESSAGE.search(line)), "")  # the last, the one raised
     last = lines[-1] if lines else ""
     if returncode is None:
         return "obscure", "timed out: " + last
