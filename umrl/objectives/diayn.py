@@ -153,6 +153,9 @@ class DIAYNLoss(LossModule):
         self.sac_loss.set_keys(**{name: getattr(self.tensor_keys, name) for name in self._SAC_KEYS})
         written = unravel_key(("next", self.tensor_keys.reward))  # the relabelled reward: written, never read
         self._required_keys = [key for key in self.in_keys if key != written]
+        # the error texts, formatted once here rather than on every update
+        self._batch_expected = f"a batch of transitions with {self._required_keys}"
+        self._skill_name = f"tensordict[{self.tensor_keys.skill!r}]"
 
     def make_value_estimator(self, value_type: ValueEstimators = None, **hyperparams):
         """Sets SAC's value estimator (e.g. ``make_value_estimator(gamma=0.99)``)."""
@@ -173,9 +176,9 @@ class DIAYNLoss(LossModule):
         return [*self.sac_loss.out_keys, "loss_discriminator", "discriminator_accuracy", "pseudo_reward"]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        check_keys("tensordict", tensordict, self._required_keys, f"a batch of transitions with {self._required_keys}")
+        check_keys("tensordict", tensordict, self._required_keys, self._batch_expected)
         skill = tensordict.get(self.tensor_keys.skill)
-        check_skills(f"tensordict[{self.tensor_keys.skill!r}]", skill, self.num_skills)
+        check_skills(self._skill_name, skill, self.num_skills)
         # One forward of D serves both its loss and the relabelled reward (the reward sees detached logits).
         logits = discriminator_logits(self.discriminator, tensordict.get(self.tensor_keys.discriminator_observation))
         reward = skill_reward(logits.detach(), skill)
