@@ -8,6 +8,7 @@ from umrl.metatest import (
     ablation_table,
     arm_label,
     arm_styles,
+    baseline_arms,
     curves_from_rows,
     pretraining_note,
     provenance,
@@ -112,6 +113,21 @@ def test_ablation_curves_and_table():
     assert ablation_curves(rows, metric="final")["point_nav"]["uml_diayn"].mean == pytest.approx([-10.0, -4.0])
     with pytest.raises(ValueError, match="'auc' or 'final'.*'median'"):
         ablation_curves(rows, metric="median")
+
+
+def test_a_baseline_without_iterations_is_flat_across_the_checkpoints():
+    rows = []
+    for it, level in ((0, -10.0), (20, -4.0), (40, -2.0)):
+        rows += to_rows(np.full((3, 2), level), FULL_3x2, method="oracle", env="point_nav", seed=0, iteration=str(it))
+    rows += to_rows(np.full((3, 2), -6.0), FULL_3x2, method="scratch", env="point_nav", seed=0)
+    assert baseline_arms(rows) == {"scratch"}
+    curves = ablation_curves(rows, metric="auc")
+    scratch = curves["point_nav"]["scratch"]
+    assert list(scratch.x) == [0, 40] and scratch.mean == pytest.approx([-12.0, -12.0])
+    assert list(curves["point_nav"]["oracle"].x) == [0, 20, 40]
+    table = ablation_table(curves, baseline_arms(rows))
+    assert "| point_nav | scratch | — | -12.0 [-12.0, -12.0] |" in table
+    assert table.count("| scratch |") == 1
 
 
 def test_pretraining_note_says_shared_or_independent():

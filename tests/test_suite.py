@@ -173,3 +173,28 @@ def test_reuse_templates_point_the_plan_at_finished_runs(tmp_path):
     for proposal in ("random", "oracle"):
         run = runs[f"maml_{proposal}", "point_nav", 0]
         assert run.reused and run.run_dir == tmp_path / "runs" / proposal / "point_nav"
+
+
+def test_the_ablation_meta_tests_its_baselines_once_per_seed_at_its_k(tmp_path):
+    cfg = _cfg(tmp_path, "seeds=[0]", "methods=[oracle,diayn_init]", "ablation.enabled=true",
+               "ablation.methods=[oracle]", "ablation.baselines=[scratch,diayn_init]", "ablation.num_steps=3")
+    runs = suite.plan_pretraining(cfg, "g", "code")
+    checkpoints = runs["maml_oracle", "point_nav", 0].run_dir / "checkpoints"
+    checkpoints.mkdir(parents=True)
+    for step in (0, 5, 10):
+        (checkpoints / f"step_{step}.pt").write_bytes(b"")
+    jobs = {job.key: job.args[0] for job in suite.plan_ablation(cfg, runs, "code")}
+    assert sorted(jobs) == ["ablation/point_nav/diayn_init/seed0", "ablation/point_nav/oracle/seed0/iter0",
+                            "ablation/point_nav/oracle/seed0/iter10", "ablation/point_nav/oracle/seed0/iter5",
+                            "ablation/point_nav/scratch/seed0"]
+    scratch, diayn_init = jobs["ablation/point_nav/scratch/seed0"], jobs["ablation/point_nav/diayn_init/seed0"]
+    assert scratch.checkpoint is None and scratch.protocol.num_steps == 3 and "iteration" not in scratch.extra
+    assert diayn_init.checkpoint == str(runs["diayn", "point_nav", 0].run_dir)
+    assert jobs["ablation/point_nav/oracle/seed0/iter5"].extra == {"iteration": 5}
+    # scratch needs no pre-training run; a baseline that does must be among the methods
+    _cfg(tmp_path, "seeds=[0]", "methods=[oracle]", "ablation.enabled=true", "ablation.methods=[oracle]")
+    with pytest.raises(ConfigError, match=r"ablation.baselines: got \['diayn_init'\] \(.* would have no "
+                                          r"pre-training run\); expected methods that need no "
+                                          r"pre-training \(scratch\) or are also listed in methods \(oracle\)"):
+        _cfg(tmp_path, "seeds=[0]", "methods=[oracle]", "ablation.enabled=true", "ablation.methods=[oracle]",
+             "ablation.baselines=[diayn_init]")

@@ -48,6 +48,8 @@ from umrl.validation import (
 RECIPE_SCHEMAS = {"diayn": DIAYNConfig, "maml": MAMLConfig, "vime": VIMEConfig}
 """The schema each ``pretrain.<recipe>.overrides`` is checked against."""
 MAML_METHODS = tuple(m.name for m in METHODS.values() if m.pretraining and m.pretraining.recipe == "maml")
+BASELINE_METHODS = tuple(m for m in METHODS if m not in MAML_METHODS)
+"""Methods the ablation can draw beside the MAML checkpoints: the ones not meta-trained (one cell per seed)."""
 
 
 def check_reuse(name: str, value: Any) -> str | dict | None:
@@ -168,10 +170,13 @@ class PretrainGroup:
 
 @dataclass
 class AblationConfig:
-    """Meta-test of kept MAML checkpoints: ``methods`` must be MAML methods of the suite's ``methods``."""
+    """Meta-test of kept MAML checkpoints: ``methods`` must be MAML methods of the suite's ``methods``;
+    ``baselines`` methods that are not meta-trained (scratch; one that needs pre-training must be in ``methods``),
+    meta-tested once per seed at the ablation's K as the level every checkpoint is read against."""
 
     enabled: bool = boolean()
     methods: list[str] = choice_list(MAML_METHODS)
+    baselines: list[str] = choice_list(BASELINE_METHODS)
     seeds: list[int] = int_list(min=0, max=SEED_MAX, unique=True)
     max_checkpoints: int = integer(min=1)
     num_steps: int = integer(min=1)
@@ -230,6 +235,12 @@ class SuiteConfig:
                 errors.append(InvalidValue("ablation.methods", cfg["ablation"]["methods"],
                                            f"methods also listed in methods ({', '.join(cfg['methods'])})",
                                            note=f"{missing} would be skipped").message())
+            unplanned = [m for m in cfg["ablation"]["baselines"] if METHODS[m].pretraining and m not in cfg["methods"]]
+            if unplanned:
+                errors.append(InvalidValue("ablation.baselines", cfg["ablation"]["baselines"],
+                                           "methods that need no pre-training (scratch) or are also listed in methods "
+                                           f"({', '.join(cfg['methods'])})",
+                                           note=f"{unplanned} would have no pre-training run").message())
         for recipe, schema in RECIPE_SCHEMAS.items():
             errors += check_partial(cfg["pretrain"][recipe]["overrides"], schema, f"pretrain.{recipe}.overrides.")
         diayn, maml = cfg["pretrain"]["diayn"]["overrides"], cfg["pretrain"]["maml"]["overrides"]

@@ -51,7 +51,7 @@ def _panels(curves: Mapping[str, Mapping[str, Curve]], path: str | os.PathLike, 
         for method, curve in methods.items():
             style = dict((styles or {}).get(method) or {"color": METHOD_COLORS.get(method)})
             color = style.pop("color", None)
-            ax.plot(curve.x, curve.mean, label=method, color=color, marker=marker, **style)
+            ax.plot(curve.x, curve.mean, label=method, color=color, **{"marker": marker, **style})
             ax.fill_between(curve.x, curve.low, curve.high, color=color, alpha=0.2, linewidth=0)
         ax.set_title(panel)
         ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))

@@ -14,7 +14,7 @@ import json
 import math
 import os
 import warnings
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Collection, Iterable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -237,34 +237,54 @@ def summary_table(rows: Sequence[Mapping], *, steps: Sequence[int] = (0, 1, 5), 
     return "\n".join(lines), records
 
 
+def baseline_arms(rows: Iterable[Mapping]) -> set[str]:
+    """Arm labels of ablation rows without an ``iteration`` (methods meta-tested once, not along meta-training)."""
+    return {_label(r) for r in rows if r.get("iteration") is None}
+
+
 def ablation_curves(rows: Sequence[Mapping], *, metric: str) -> dict[str, dict[str, Curve]]:
     """``{env: {arm label: Curve over meta-training iterations}}`` of the per-run ``metric`` (``auc`` | ``final``).
 
-    Rows carry an ``iteration`` column (the meta-training iteration of the meta-tested checkpoint).
+    Rows of meta-trained checkpoints carry an ``iteration`` column (the meta-training iteration of the checkpoint).
+    An arm whose rows have none (a baseline such as scratch, meta-tested once) is a flat curve over the env's first
+    and last iteration, the level the checkpoints are read against.
     """
     if metric not in ("auc", "final"):
         raise ValueError(f"metric must be 'auc' or 'final', got {metric!r}.")
+
+    def stats(arm_rows: Sequence[Mapping], env: str, label: str) -> tuple[float, float, float]:
+        matrix = run_matrix(arm_rows, env=env, method=label)
+        values = auc(matrix) if metric == "auc" else matrix[:, -1]
+        return (values.mean(), *bootstrap_ci(values))
+
     curves: dict[str, dict[str, Curve]] = {}
+    baselines = []
     for env, label in sorted({(r["env"], _label(r)) for r in rows}):
         arm_rows = [r for r in rows if r["env"] == env and _label(r) == label]
+        if label in baseline_arms(arm_rows):
+            baselines.append((env, label, stats(arm_rows, env, label)))
+            continue
         iterations = sorted({int(r["iteration"]) for r in arm_rows})
-        stats = []
-        for it in iterations:
-            matrix = run_matrix([r for r in arm_rows if int(r["iteration"]) == it], env=env, method=label)
-            values = auc(matrix) if metric == "auc" else matrix[:, -1]
-            stats.append((values.mean(), *bootstrap_ci(values)))
-        mean, low, high = (list(x) for x in zip(*stats))
+        mean, low, high = (list(x) for x in zip(*(
+            stats([r for r in arm_rows if int(r["iteration"]) == it], env, label) for it in iterations)))
         curves.setdefault(env, {})[label] = Curve(iterations, mean, low, high)
+    for env, label, (mean, low, high) in baselines:
+        xs = sorted({x for c in curves.get(env, {}).values() for x in c.x}) or [0]
+        span = [xs[0], xs[-1]]
+        curves.setdefault(env, {})[label] = Curve(span, [mean] * 2, [low] * 2, [high] * 2)
     return curves
 
 
-def ablation_table(curves: Mapping[str, Mapping[str, Curve]]) -> str:
-    """Markdown of :func:`ablation_curves`' output: one line per (env, arm, iteration) with mean and 95 % CI."""
+def ablation_table(curves: Mapping[str, Mapping[str, Curve]], baselines: Collection[str] = ()) -> str:
+    """Markdown of :func:`ablation_curves`' output: one line per (env, arm, iteration) with mean and 95 % CI; an arm
+    in ``baselines`` (not meta-trained) gets one line, its iteration shown as "—"."""
     lines = ["# Meta-training ablation", "", "| env | method | iteration | AUC mean [95% CI] |", "|---|---|---|---|"]
     for env, methods in curves.items():
         for method, c in methods.items():
-            lines += [f"| {env} | {method} | {it} | {m:.1f} [{lo:.1f}, {hi:.1f}] |"
-                      for it, m, lo, hi in zip(c.x, c.mean, c.low, c.high)]
+            points = list(zip(c.x, c.mean, c.low, c.high))
+            if method in baselines:
+                points = [("—", *points[0][1:])]
+            lines += [f"| {env} | {method} | {it} | {m:.1f} [{lo:.1f}, {hi:.1f}] |" for it, m, lo, hi in points]
     return "\n".join(lines) + "\n"
 
 
@@ -298,6 +318,7 @@ __all__ = [
     "ablation_table",
     "arm_label",
     "arm_styles",
+    "baseline_arms",
     "curves_from_rows",
     "mean_curve",
     "pretraining_note",

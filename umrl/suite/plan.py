@@ -281,31 +281,52 @@ def plan(cfg: DictConfig, group: str, code: str = "", runs: Mapping | None = Non
     return sorted(jobs.values(), key=rank)
 
 
-def plan_ablation(cfg: DictConfig, runs: Mapping, code: str = "") -> list[Job]:
-    """Meta-test jobs for up to ``ablation.max_checkpoints`` kept MAML checkpoints (evenly spaced, last included)."""
-    jobs = []
+def _ablation_job(cfg: DictConfig, settings: Mapping, checkpoint_id: str | None, code: str, path: str,
+                  what: str) -> Job:
+    """The ablation's meta-test job of ``settings``, its files under ``<output_dir>/ablation/<path>``."""
     out = Path(cfg.output_dir).absolute()
+    spec = keyed_cell(settings, checkpoint_id, code, out / "ablation" / path)
+    return Job(key=f"ablation/{path}", fn=run_cell, args=(spec,), done=partial(cell_finished, spec.output), what=what,
+               log=out / "logs" / f"ablation_{path.replace('/', '_')}.log")
+
+
+def plan_ablation(cfg: DictConfig, runs: Mapping, code: str = "") -> list[Job]:
+    """Meta-test jobs for up to ``ablation.max_checkpoints`` kept MAML checkpoints (evenly spaced, last included),
+    and one per ``ablation.baselines`` method and seed at the same K (its rows carry no ``iteration``)."""
+    jobs = []
+    num_steps = int(cfg.ablation.num_steps)
+    pseeds = dict(zip(cfg.seeds, pretrain_seeds(cfg)))
     for env in cfg.envs:
+        for name in cfg.ablation.baselines:
+            pretraining = get_method(name).pretraining
+            for seed in cfg.ablation.seeds:
+                checkpoint = checkpoint_id = None
+                if pretraining is not None:
+                    run = runs.get((pretraining.kind, env, pseeds.get(seed, seed)))
+                    if run is None:
+                        continue
+                    checkpoint = str(run.run_dir)
+                    checkpoint_id = checkpoint_identity(run, checkpoint)
+                settings = cell_spec(cfg, name, env, seed, checkpoint, lr_schedule=_cell_schedules(cfg, name)[0],
+                                     num_steps=num_steps)
+                jobs.append(_ablation_job(cfg, settings, checkpoint_id, code, f"{env}/{name}/seed{seed}",
+                                          f"ablation baseline: meta-test of {name} on {env}, seed {seed}"))
         for name in cfg.ablation.methods:
             pretraining = get_method(name).pretraining
             if name not in cfg.methods or pretraining is None or pretraining.recipe != "maml":
                 continue
             for seed in cfg.ablation.seeds:
-                pseed = pretrain_seeds(cfg)[list(cfg.seeds).index(seed)] if seed in cfg.seeds else seed
-                if (pretraining.kind, env, pseed) not in runs:
+                run = runs.get((pretraining.kind, env, pseeds.get(seed, seed)))
+                if run is None:
                     continue
-                run = runs[pretraining.kind, env, pseed]
                 files = Checkpointer(run.run_dir / "checkpoints").all()
                 count = min(len(files), int(cfg.ablation.max_checkpoints))
                 picks = sorted({round(i * (len(files) - 1) / max(count - 1, 1)) for i in range(count)}) if files else []
                 for file in (files[i] for i in picks):
                     iteration = int(file.stem.split("_")[-1])
                     settings = cell_spec(cfg, name, env, seed, str(file), lr_schedule=sgd_schedules(cfg)[0],
-                                         num_steps=int(cfg.ablation.num_steps), iteration=iteration)
-                    spec = keyed_cell(settings, checkpoint_identity(run, file), code,
-                                      out / "ablation" / env / name / f"seed{seed}" / f"iter{iteration}")
-                    key = f"ablation/{env}/{name}/seed{seed}/iter{iteration}"
-                    jobs.append(Job(key=key, fn=run_cell, args=(spec,), done=partial(cell_finished, spec.output),
-                                    what=f"ablation meta-test of {name} on {env}, seed {seed}, {file.name}",
-                                    log=out / "logs" / f"ablation_{env}_{name}_seed{seed}_iter{iteration}.log"))
+                                         num_steps=num_steps, iteration=iteration)
+                    jobs.append(_ablation_job(cfg, settings, checkpoint_identity(run, file), code,
+                                              f"{env}/{name}/seed{seed}/iter{iteration}",
+                                              f"ablation meta-test of {name} on {env}, seed {seed}, {file.name}"))
     return jobs

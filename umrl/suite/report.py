@@ -18,6 +18,7 @@ from umrl.metatest import (
     ablation_table,
     arm_label,
     arm_styles,
+    baseline_arms,
     curves_from_rows,
     plot_ablation,
     plot_adaptation_curves,
@@ -62,9 +63,12 @@ def report(cfg: DictConfig, group: str, timings: Mapping[str, float], cells: Seq
     ablation_md = None
     if ablation_rows:
         along_training = ablation_curves(ablation_rows, metric="auc")
+        baselines = baseline_arms(ablation_rows)
+        styles = {arm: {**style, **({"linestyle": ":", "marker": None} if arm in baselines else {})}
+                  for arm, style in arm_styles(ablation_rows).items()}
         plot_ablation(along_training, out / "ablation.png",
-                      metric=f"meta-test AUC (k = 0..{cfg.ablation.num_steps})", styles=arm_styles(ablation_rows))
-        ablation_md = ablation_table(along_training)
+                      metric=f"meta-test AUC (k = 0..{cfg.ablation.num_steps})", styles=styles)
+        ablation_md = ablation_table(along_training, baselines)
         write_text_atomic(out / "ablation.md", ablation_md)
     record = provenance(command=shlex.join([Path(sys.executable).name, *sys.argv]), wall_seconds=wall_seconds,
                         job_threads=int(cfg.launcher.threads))
