@@ -179,6 +179,7 @@ def test_the_ablation_meta_tests_its_baselines_once_per_seed_at_its_k(tmp_path):
     cfg = _cfg(tmp_path, "seeds=[0]", "methods=[oracle,diayn_init]", "ablation.enabled=true",
                "ablation.methods=[oracle]", "ablation.baselines=[scratch,diayn_init]", "ablation.num_steps=3")
     runs = suite.plan_pretraining(cfg, "g", "code")
+    assert suite.plan_ablation(cfg, runs, "code") == []  # no checkpoint yet: no baseline read against nothing
     checkpoints = runs["maml_oracle", "point_nav", 0].run_dir / "checkpoints"
     checkpoints.mkdir(parents=True)
     for step in (0, 5, 10):

@@ -292,31 +292,23 @@ def _ablation_job(cfg: DictConfig, settings: Mapping, checkpoint_id: str | None,
 
 def plan_ablation(cfg: DictConfig, runs: Mapping, code: str = "") -> list[Job]:
     """Meta-test jobs for up to ``ablation.max_checkpoints`` kept MAML checkpoints (evenly spaced, last included),
-    and one per ``ablation.baselines`` method and seed at the same K (its rows carry no ``iteration``)."""
+    and, on an env with any, one per ``ablation.baselines`` method and seed at the same K (its rows carry no
+    ``iteration``)."""
     jobs = []
     num_steps = int(cfg.ablation.num_steps)
     pseeds = dict(zip(cfg.seeds, pretrain_seeds(cfg)))
+
+    def run_of(pretraining: Pretraining, env: str, seed: int) -> PretrainRun | None:
+        return runs.get((pretraining.kind, env, pseeds.get(seed, seed)))
+
     for env in cfg.envs:
-        for name in cfg.ablation.baselines:
-            pretraining = get_method(name).pretraining
-            for seed in cfg.ablation.seeds:
-                checkpoint = checkpoint_id = None
-                if pretraining is not None:
-                    run = runs.get((pretraining.kind, env, pseeds.get(seed, seed)))
-                    if run is None:
-                        continue
-                    checkpoint = str(run.run_dir)
-                    checkpoint_id = checkpoint_identity(run, checkpoint)
-                settings = cell_spec(cfg, name, env, seed, checkpoint, lr_schedule=_cell_schedules(cfg, name)[0],
-                                     num_steps=num_steps)
-                jobs.append(_ablation_job(cfg, settings, checkpoint_id, code, f"{env}/{name}/seed{seed}",
-                                          f"ablation baseline: meta-test of {name} on {env}, seed {seed}"))
+        checkpoints = []
         for name in cfg.ablation.methods:
             pretraining = get_method(name).pretraining
             if name not in cfg.methods or pretraining is None or pretraining.recipe != "maml":
                 continue
             for seed in cfg.ablation.seeds:
-                run = runs.get((pretraining.kind, env, pseeds.get(seed, seed)))
+                run = run_of(pretraining, env, seed)
                 if run is None:
                     continue
                 files = Checkpointer(run.run_dir / "checkpoints").all()
@@ -326,7 +318,24 @@ def plan_ablation(cfg: DictConfig, runs: Mapping, code: str = "") -> list[Job]:
                     iteration = int(file.stem.split("_")[-1])
                     settings = cell_spec(cfg, name, env, seed, str(file), lr_schedule=sgd_schedules(cfg)[0],
                                          num_steps=num_steps, iteration=iteration)
-                    jobs.append(_ablation_job(cfg, settings, checkpoint_identity(run, file), code,
-                                              f"{env}/{name}/seed{seed}/iter{iteration}",
-                                              f"ablation meta-test of {name} on {env}, seed {seed}, {file.name}"))
+                    checkpoints.append(_ablation_job(cfg, settings, checkpoint_identity(run, file), code,
+                                                     f"{env}/{name}/seed{seed}/iter{iteration}",
+                                                     f"ablation meta-test of {name} on {env}, seed {seed}, {file.name}"))
+        if not checkpoints:
+            continue  # a baseline alone would be read against nothing
+        for name in cfg.ablation.baselines:
+            pretraining = get_method(name).pretraining
+            for seed in cfg.ablation.seeds:
+                checkpoint = checkpoint_id = None
+                if pretraining is not None:
+                    run = run_of(pretraining, env, seed)
+                    if run is None:
+                        continue
+                    checkpoint = str(run.run_dir)
+                    checkpoint_id = checkpoint_identity(run, checkpoint)
+                settings = cell_spec(cfg, name, env, seed, checkpoint, lr_schedule=_cell_schedules(cfg, name)[0],
+                                     num_steps=num_steps)
+                jobs.append(_ablation_job(cfg, settings, checkpoint_id, code, f"{env}/{name}/seed{seed}",
+                                          f"ablation baseline: meta-test of {name} on {env}, seed {seed}"))
+        jobs += checkpoints
     return jobs
