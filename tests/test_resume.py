@@ -18,6 +18,7 @@ from tensordict import TensorDictBase
 from umrl.configs import ConfigError
 from umrl.runtime import Checkpointer, read_checkpoint
 from umrl.trainers import compose
+from umrl.trainers.diayn import train as train_diayn
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
@@ -97,6 +98,20 @@ def test_resume_at_a_checkpoint_is_bit_identical(tmp_path, recipe, env_name):
     assert any(path.startswith(f"/{PARAMS[recipe]}/") for path in diffs)
     if recipe == "diayn":  # the collector's trajectory ids continue across the resume
         assert "/replay/_storage/rows/('collector', 'traj_ids')" in diffs
+
+
+def test_diayn_resume_keeps_the_random_policy_score(tmp_path):
+    """The random policy is scored once, by the initial discriminator: a resumed run reports that score and logs no
+    second ``eval/random_*`` row (rescoring with the trained discriminator would change it)."""
+    overrides = ("logger.backend=csv", "eval.episodes_per_skill=4")
+    whole = train_diayn(config("diayn", tmp_path / "whole", "point_nav", "collector.total_frames=160", *overrides))
+    train_diayn(config("diayn", tmp_path / "split", "point_nav", "collector.total_frames=80", *overrides))
+    resumed = train_diayn(config("diayn", tmp_path / "split", "point_nav", "collector.total_frames=160",
+                                 "resume=true", *overrides))
+    random_metrics = {key: value for key, value in whole.items() if key.startswith("eval/random_")}
+    assert random_metrics and random_metrics == {key: resumed[key] for key in random_metrics}
+    logged = list((tmp_path / "split").rglob("random_final_state_accuracy.csv"))
+    assert len(logged) == 1 and len(logged[0].read_text().split()) == 1, logged
 
 
 def test_sigkill_mid_iteration_then_resume_is_bit_identical(tmp_path):

@@ -15,6 +15,9 @@ A checkpoint is a dict (stored by :mod:`umrl.checkpoint_file`):
 - ``"loss"``: state dict of the :class:`~umrl.objectives.diayn.DIAYNLoss` (actor, twin Q-networks and their targets,
   discriminator, alpha), ``"optimizers"``: ``{"actor", "qvalue", "discriminator"[, "alpha"]}`` Adam state dicts;
 - ``"counters"``: ``frames`` (env steps), ``updates``, ``next_eval``, ``next_checkpoint``, ``update_credit``;
+- ``"random_metrics"``: the ``eval/random_*`` metrics of a uniformly random policy, scored by the run's initial
+  discriminator (a resumed run reports these instead of rescoring with the trained one; absent in checkpoints written
+  before the key);
 - ``"replay"``: :func:`umrl.runtime.replay_buffer_state` (TorchRL's ``state_dict``: sampler, writer, and the storage
   cut to its filled rows);
 - ``"rng"``: :func:`umrl.runtime.rng_state` (torch, numpy, python); ``"envs"``: ``{"train", "eval"}``
@@ -67,6 +70,7 @@ def save_diayn_checkpoint(
     loss: torch.nn.Module,
     optimizers: Mapping[str, torch.optim.Optimizer],
     counters: Mapping[str, int | float],
+    random_metrics: Mapping[str, float],
     replay: Mapping[str, Any],
     rng: Mapping[str, Any],
     envs: Mapping[str, Any],
@@ -80,7 +84,7 @@ def save_diayn_checkpoint(
         checkpointer, counters["frames"], meta, config,
         actor=actor.state_dict(), discriminator=discriminator.state_dict(), loss=loss.state_dict(),
         optimizers={k: o.state_dict() for k, o in optimizers.items()}, counters=dict(counters),
-        replay=dict(replay), rng=dict(rng), envs=dict(envs), collector=dict(collector),
+        random_metrics=dict(random_metrics), replay=dict(replay), rng=dict(rng), envs=dict(envs), collector=dict(collector),
     )
 
 

@@ -183,9 +183,12 @@ class DIAYNTrainer:
         with isolated_rng():
             self.baseline = evaluate_skills(self.eval_env, None, env_name=cfg.env.name, num_skills=num_skills,
                                             episodes_per_skill=cfg.eval.episodes_per_skill, horizon=cfg.env.horizon)
-        self.random_metrics = {f"eval/random_{k}": v for k, v in coverage_metrics(
-            self.baseline, num_skills, self.discriminator, env_spec.eval_tasks()).items()}
-        log_metrics(self.logger, self.random_metrics, self.counters["frames"])
+        if state is not None and "random_metrics" in state:  # scored by the initial discriminator, logged once
+            self.random_metrics = dict(state["random_metrics"])
+        else:
+            self.random_metrics = {f"eval/random_{k}": v for k, v in coverage_metrics(
+                self.baseline, num_skills, self.discriminator, env_spec.eval_tasks()).items()}
+            log_metrics(self.logger, self.random_metrics, self.counters["frames"])
         if state is not None:  # after everything that draws while setting up: the loop starts where the saved one stood
             self.load_state_dict(state)
         self._batches = batches_beside_physics(self.collector, self.env)
@@ -197,11 +200,12 @@ class DIAYNTrainer:
         return self.counters["frames"] >= self.cfg.collector.total_frames
 
     def state_dict(self) -> dict:
-        """Networks (the loss's), optimisers, counters, the replay buffer, every RNG, both envs' reset noise and the
-        collector's trajectory counter."""
+        """Networks (the loss's), optimisers, counters, the random policy's metrics, the replay buffer, every RNG,
+        both envs' reset noise and the collector's trajectory counter."""
         return {"loss": self.loss.state_dict(),
                 "optimizers": {name: opt.state_dict() for name, opt in self.optimizers.items()},
-                "counters": dict(self.counters), "replay": replay_buffer_state(self.buffer), "rng": rng_state(),
+                "counters": dict(self.counters), "random_metrics": dict(self.random_metrics),
+                "replay": replay_buffer_state(self.buffer), "rng": rng_state(),
                 "envs": {"train": env_state(self.env), "eval": env_state(self.eval_env)},
                 "collector": {"traj_pool": self.collector.state_dict()["traj_pool"]}}
 
@@ -224,8 +228,8 @@ class DIAYNTrainer:
         state = self.state_dict()
         path = save_diayn_checkpoint(
             self.checkpointer, meta=self.meta, actor=self.actor, discriminator=self.discriminator, loss=self.loss,
-            optimizers=self.optimizers, counters=self.counters, replay=state["replay"], rng=state["rng"],
-            envs=state["envs"], collector=state["collector"], config=self.cfg)
+            optimizers=self.optimizers, counters=self.counters, random_metrics=self.random_metrics,
+            replay=state["replay"], rng=state["rng"], envs=state["envs"], collector=state["collector"], config=self.cfg)
         self.collector.reset()
         return path
 
