@@ -84,7 +84,8 @@ def save_diayn_checkpoint(
         checkpointer, counters["frames"], meta, config,
         actor=actor.state_dict(), discriminator=discriminator.state_dict(), loss=loss.state_dict(),
         optimizers={k: o.state_dict() for k, o in optimizers.items()}, counters=dict(counters),
-        random_metrics=dict(random_metrics), replay=dict(replay), rng=dict(rng), envs=dict(envs), collector=dict(collector),
+        random_metrics=dict(random_metrics), replay=dict(replay), rng=dict(rng), envs=dict(envs),
+        collector=dict(collector),
     )
 
 
