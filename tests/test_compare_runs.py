@@ -78,3 +78,26 @@ def test_bad_horizons_and_duplicate_labels_are_refused(two_runs, monkeypatch, ca
         _cli(monkeypatch, capsys, "--horizons", "0", "--run", run)
     with pytest.raises(SystemExit, match="labels must differ"):
         _cli(monkeypatch, capsys, "--run", run, "--run", run)
+
+
+def test_paired_compares_each_later_run_with_the_first_task_by_task(two_runs, monkeypatch, capsys):
+    printed = _cli(monkeypatch, capsys, "--paired", "--horizons", "4", "8",
+                   "--run", f"short=uml_random (constant)@{two_runs / 'short'}",
+                   "--run", f"long=uml_random (constant)@{two_runs / 'long.csv'}",
+                   "--run", f"scratch=scratch@{two_runs / 'short'}")
+    paired = {line.strip("| ").split(" | ")[0]: line.strip("| ").split(" | ")
+              for line in printed.split("\n\n")[3].splitlines() if not line.startswith(("| run ", "|---"))}
+    # seed 0 only is shared; long's seed 0 equals short on k = 0..4, so every task's difference is 0 and none is ahead
+    assert paired["long"] == ["long", "4", "0.0 [0.0, 0.0], 0", "—"]
+    # scratch's AUC over k = 0..4 is -4 on every task, short's -32 (1 + t): differences 28, 60, 92, 124, all ahead
+    assert paired["scratch"] == ["scratch", "4", paired["scratch"][2], "—"]
+    assert paired["scratch"][2].startswith("76.0 [") and paired["scratch"][2].endswith("], 4")
+
+
+def test_paired_refuses_runs_without_a_shared_seed(two_runs, monkeypatch, capsys):
+    only_seed_1 = two_runs / "seed1.csv"
+    rows = [r for r in (two_runs / "long.csv").read_text().splitlines()]
+    only_seed_1.write_text("\n".join([rows[0]] + [r for r in rows[1:] if r.split(",")[2] == "1"]) + "\n")
+    with pytest.raises(SystemExit, match=r"--paired: 'b' and 'a' share no seed with the same tasks \(seeds \[1\] and \[0\]\)"):
+        _cli(monkeypatch, capsys, "--paired", "--horizons", "4", "--run", f"a=scratch@{two_runs / 'short'}",
+             "--run", f"b=uml_random (constant)@{only_seed_1}")

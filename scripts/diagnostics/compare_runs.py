@@ -12,6 +12,10 @@ in one table and one figure. Prints, per run, the IQM return at ``--steps`` and 
 k = 0..K for each horizon K the run reaches (``—`` where it stops earlier), then the AUC of each seed's mean curve
 over tasks (with independent pre-training per seed: one number per pre-training run), and draws one panel per
 horizon: mean return with a 95 % band; runs of the same method are shades of its colour, lighter first.
+
+With ``--paired``, every later run is also compared with the first task by task (runs of one seed meta-test the same
+held-out tasks): the mean per-task AUC difference (later − first) [95 % bootstrap CI over seeds × tasks] and on how
+many tasks the later run is ahead.
 """
 from __future__ import annotations
 
@@ -25,6 +29,7 @@ from umrl.metatest import (
     METHOD_COLORS,
     arm_label,
     auc,
+    bootstrap_ci,
     iqm,
     mean_curve,
     plot_adaptation_curves,
@@ -73,6 +78,28 @@ def run_styles(labels_arms: list[tuple[str, str]]) -> dict[str, dict]:
     return styles
 
 
+def paired_table(per_seed: dict[str, dict[int, np.ndarray]], horizons: list[int]) -> list[str]:
+    """Markdown rows: each later run against the first, per-task AUC difference over the seeds both runs hold."""
+    (first, base), *others = per_seed.items()
+    header = ["run", f"against {first}: tasks"] + [f"AUC k<={h} difference [95% CI], ahead" for h in horizons]
+    lines = ["", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for label, seeds in others:
+        shared = sorted(set(seeds) & set(base))
+        if not shared or any(seeds[s].shape[0] != base[s].shape[0] for s in shared):
+            raise SystemExit(f"--paired: {label!r} and {first!r} share no seed with the same tasks "
+                             f"(seeds {sorted(seeds)} and {sorted(base)}).")
+        cells = [label, str(sum(base[s].shape[0] for s in shared))]
+        for h in horizons:
+            if min(min(seeds[s].shape[1], base[s].shape[1]) for s in shared) <= h:
+                cells.append("—")
+                continue
+            diff = np.concatenate([auc(seeds[s][:, :h + 1]) - auc(base[s][:, :h + 1]) for s in shared])
+            low, high = bootstrap_ci(diff)
+            cells.append(f"{diff.mean():.1f} [{low:.1f}, {high:.1f}], {int((diff > 0).sum())}")
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--run", action="append", required=True, help="LABEL=ARM@PATH (repeat)")
@@ -80,6 +107,7 @@ def main() -> None:
     parser.add_argument("--horizons", type=int, nargs="+", default=[20, 100], help="K of each AUC column and panel")
     parser.add_argument("--steps", type=int, nargs="*", default=[0, 1], help="k of the return columns")
     parser.add_argument("--out", default=None, help="PNG of the curves (default: no figure)")
+    parser.add_argument("--paired", action="store_true", help="also compare each later run with the first, per task")
     args = parser.parse_args()
     for name, least in (("horizons", 1), ("steps", 0)):
         if min(getattr(args, name), default=least) < least:
@@ -112,6 +140,8 @@ def main() -> None:
         cells += [" / ".join(f"{auc(m[:, :h + 1].mean(0)):.1f}" for m in seeds.values())
                   if matrices[label].shape[1] > h else "—" for h in args.horizons]
         lines.append("| " + " | ".join(cells) + " |")
+    if args.paired:
+        lines += paired_table(per_seed, args.horizons)
     print("\n".join(lines))
 
     if args.out:
