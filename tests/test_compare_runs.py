@@ -96,7 +96,7 @@ def test_paired_compares_each_later_run_with_the_first_task_by_task(two_runs, mo
 
 def test_paired_refuses_runs_without_a_shared_seed(two_runs, monkeypatch, capsys):
     only_seed_1 = two_runs / "seed1.csv"
-    rows = [r for r in (two_runs / "long.csv").read_text().splitlines()]
+    rows = (two_runs / "long.csv").read_text().splitlines()
     only_seed_1.write_text("\n".join([rows[0]] + [r for r in rows[1:] if r.split(",")[2] == "1"]) + "\n")
     with pytest.raises(SystemExit, match=r"--paired: 'b' and 'a' share no seed with the same tasks \(seeds \[1\] and \[0\]\)"):
         _cli(monkeypatch, capsys, "--paired", "--horizons", "4", "--run", f"a=scratch@{two_runs / 'short'}",
