@@ -101,3 +101,17 @@ def test_paired_refuses_runs_without_a_shared_seed(two_runs, monkeypatch, capsys
     with pytest.raises(SystemExit, match=r"--paired: 'b' and 'a' share no seed with the same tasks \(seeds \[1\] and \[0\]\)"):
         _cli(monkeypatch, capsys, "--paired", "--horizons", "4", "--run", f"a=scratch@{two_runs / 'short'}",
              "--run", f"b=uml_random (constant)@{only_seed_1}")
+
+
+def test_a_glob_path_pools_the_files_it_matches_as_one_run(two_runs, monkeypatch, capsys):
+    rows = (two_runs / "long.csv").read_text().splitlines()
+    for seed in ("0", "1"):
+        folder = two_runs / f"seed{seed}"
+        folder.mkdir()
+        (folder / "cells.csv").write_text("\n".join([rows[0]] + [r for r in rows[1:] if r.split(",")[2] == seed]) + "\n")
+    pooled = _table(_cli(monkeypatch, capsys, "--horizons", "8", "--steps", "0",
+                         "--run", f"split=uml_random (constant)@{two_runs}/seed*/cells.csv",
+                         "--run", f"whole=uml_random (constant)@{two_runs / 'long.csv'}"))
+    assert pooled["split"][1:] == pooled["whole"][1:] and pooled["split"][2] == "8"
+    with pytest.raises(SystemExit, match=r"matches no file \(or a folder\)"):
+        _cli(monkeypatch, capsys, "--run", f"x=scratch@{two_runs}/nothing*/cells.csv")

@@ -8,8 +8,10 @@
 Each ``--run`` is ``LABEL=ARM@PATH``: the arm label as the suite's tables print it (``uml_diayn``,
 ``uml_random (reference)``), read from ``PATH`` (a ``results.csv`` or the suite output folder holding one). This is
 how runs that differ in what the suite's cache keys on (MAML budgets, resumed copies of pre-training runs) are put
-in one table and one figure. Prints, per run, the IQM return at ``--steps`` and the AUC IQM [95 % bootstrap CI] over
-k = 0..K for each horizon K the run reaches (``—`` where it stops earlier), then the AUC of each seed's mean curve
+in one table and one figure. A ``PATH`` with glob characters reads every file it matches as one run, so per-seed
+copies of cells pool without merging them first
+(``"UML-DIAYN=uml_diayn@results/point_nav/meta_test_ref/seed*/uml_diayn.csv"``). Prints, per run, the IQM
+return at ``--steps`` and the AUC IQM [95 % bootstrap CI] over k = 0..K for each horizon K the run reaches (``—`` where it stops earlier), then the AUC of each seed's mean curve
 over tasks (with independent pre-training per seed: one number per pre-training run), and draws one panel per
 horizon: mean return with a 95 % band; runs of the same method are shades of its colour, lighter first.
 
@@ -20,6 +22,7 @@ many tasks the later run is ahead.
 from __future__ import annotations
 
 import argparse
+import glob
 from pathlib import Path
 
 import numpy as np
@@ -39,26 +42,32 @@ from umrl.metatest import (
 )
 
 
-def parse_run(spec: str) -> tuple[str, str, Path]:
-    """``LABEL=ARM@PATH`` → ``(label, arm, results.csv path)``; a clear error for anything else."""
+def parse_run(spec: str) -> tuple[str, str, list[Path]]:
+    """``LABEL=ARM@PATH`` → ``(label, arm, results.csv paths)``; a glob ``PATH`` gives every match; a clear error for
+    anything else."""
     label, sep, rest = spec.partition("=")
     arm, at, path = rest.rpartition("@")
     if not (sep and at and label and arm and path):
         raise SystemExit(f"--run: got {spec!r}; expected LABEL=ARM@PATH, e.g. "
                          "'UML-DIAYN=uml_diayn (reference)@outputs/suite/quick/results.csv'.")
+    if glob.has_magic(path):
+        csvs = sorted(Path(match) for match in glob.glob(path))
+        if not csvs or not all(csv.is_file() for csv in csvs):
+            raise SystemExit(f"--run {label!r}: {path!r} matches no file (or a folder); a glob must match csv files.")
+        return label, arm, csvs
     csv = Path(path) / "results.csv" if Path(path).is_dir() else Path(path)
     if not csv.is_file():
         raise SystemExit(f"--run {label!r}: {path!r} is neither a results.csv nor a folder holding one.")
-    return label, arm, csv
+    return label, arm, [csv]
 
 
-def load_seeds(csv: Path, *, env: str, arm: str) -> dict[int, np.ndarray]:
-    """``{seed: [tasks, K + 1] returns}`` of one arm; names the arms the file has when ``arm`` is not one of them."""
-    all_rows = read_rows([csv])
+def load_seeds(csvs: list[Path], *, env: str, arm: str) -> dict[int, np.ndarray]:
+    """``{seed: [tasks, K + 1] returns}`` of one arm over ``csvs``; names the arms they have when ``arm`` is not one."""
+    all_rows = read_rows(csvs)
     rows = [r for r in all_rows if r["env"] == env and arm_label(r["method"], r["lr_schedule"]) == arm]
     if not rows:
         arms = sorted({(r["env"], arm_label(r["method"], r["lr_schedule"])) for r in all_rows})
-        raise SystemExit(f"{csv}: no arm {arm!r} on env {env!r}; it has " + ", ".join(f"{a!r} on {e}" for e, a in arms)
+        raise SystemExit(f"{', '.join(map(str, csvs))}: no arm {arm!r} on env {env!r}; it has " + ", ".join(f"{a!r} on {e}" for e, a in arms)
                          + ".")
     seeds = sorted({r["seed"] for r in rows})
     return {seed: run_matrix([r for r in rows if r["seed"] == seed], env=env, method=arm) for seed in seeds}
@@ -115,7 +124,7 @@ def main() -> None:
     runs = [parse_run(spec) for spec in args.run]
     if len({label for label, _, _ in runs}) < len(runs):
         raise SystemExit(f"--run: labels must differ, got {[label for label, _, _ in runs]}.")
-    per_seed = {label: load_seeds(csv, env=args.env, arm=arm) for label, arm, csv in runs}
+    per_seed = {label: load_seeds(csvs, env=args.env, arm=arm) for label, arm, csvs in runs}
     matrices = {label: np.concatenate(list(seeds.values())) for label, seeds in per_seed.items()}
 
     header = ["run", "arm", "runs"] + [f"k={k} IQM" for k in args.steps]
