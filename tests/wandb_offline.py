@@ -6,6 +6,7 @@ A ``.wandb`` file is a 7-byte header (``:W&B``, magic, version) then LevelDB-log
 shorter than a chunk header is zero padding."""
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,6 +27,8 @@ def records(path: str | Path) -> list[Record]:
             pos += left
             continue
         length, kind = int.from_bytes(data[pos + 4:pos + 6], "little"), data[pos + 6]
+        if pos + _CHUNK + length > len(data):  # the writer has not flushed the rest yet
+            break
         if kind == 0:  # zero padding to the end of the block
             pos += left
             continue
@@ -53,11 +56,23 @@ class OfflineRun:
         return sum(len(v) for v in self.metrics.values())
 
 
-def read_run(run_dir: str | Path) -> OfflineRun:
-    """The :class:`OfflineRun` of an ``offline-run-*`` directory."""
+def read_run(run_dir: str | Path, wait_s: float = 30.0) -> OfflineRun:
+    """The :class:`OfflineRun` of an ``offline-run-*`` directory.
+
+    ``run.finish()`` returns before wandb-core has written the run's file (the service closes it asynchronously),
+    so this waits up to ``wait_s`` seconds for the exit record; a run still without one is returned unfinished."""
     (file,) = Path(run_dir).glob("run-*.wandb")
-    run = OfflineRun(Path(run_dir))
-    for record in records(file):
+    deadline = time.monotonic() + wait_s
+    while True:
+        run = _parse_run(Path(run_dir), records(file) if file.stat().st_size else [])
+        if run.finished or time.monotonic() > deadline:
+            return run
+        time.sleep(0.05)
+
+
+def _parse_run(run_dir: Path, items: list[Record]) -> OfflineRun:
+    run = OfflineRun(run_dir)
+    for record in items:
         kind = record.WhichOneof("record_type")
         if kind == "run":
             run.name = record.run.display_name

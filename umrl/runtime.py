@@ -163,7 +163,10 @@ def make_logger(logger_cfg: Mapping, *, exp_name: str, config: Any = None, log_d
 
 
 def close_logger(logger: Logger | None) -> None:
-    """End ``logger``'s wandb run (its files are complete afterwards); nothing to do for CSV or ``None``."""
+    """End ``logger``'s wandb run; nothing to do for CSV or ``None``.
+
+    wandb-core finishes writing the run's files shortly after this returns, and at the latest when the process
+    exits; read an offline run's ``.wandb`` file only once it holds its exit record."""
     experiment = getattr(logger, "experiment", None)
     if experiment is not None and hasattr(experiment, "finish"):
         experiment.finish()
