@@ -18,6 +18,8 @@ _FULL, _LAST = 1, 4
 
 def records(path: str | Path) -> list[Record]:
     data = Path(path).read_bytes()
+    if len(data) < _HEADER:  # created, header not flushed yet
+        return []
     if data[:4] != b":W&B":
         raise ValueError(f"{path}: not a .wandb file (header {data[:4]!r})")
     out, parts, pos = [], [], _HEADER
@@ -64,7 +66,7 @@ def read_run(run_dir: str | Path, wait_s: float = 30.0) -> OfflineRun:
     (file,) = Path(run_dir).glob("run-*.wandb")
     deadline = time.monotonic() + wait_s
     while True:
-        run = _parse_run(Path(run_dir), records(file) if file.stat().st_size else [])
+        run = _parse_run(Path(run_dir), records(file))
         if run.finished or time.monotonic() > deadline:
             return run
         time.sleep(0.05)

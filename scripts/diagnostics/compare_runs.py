@@ -10,10 +10,12 @@ Each ``--run`` is ``LABEL=ARM@PATH``: the arm label as the suite's tables print 
 how runs that differ in what the suite's cache keys on (MAML budgets, resumed copies of pre-training runs) are put
 in one table and one figure. A ``PATH`` with glob characters reads every file it matches as one run, so per-seed
 copies of cells pool without merging them first
-(``"UML-DIAYN=uml_diayn@results/point_nav/meta_test_ref/seed*/uml_diayn.csv"``). Prints, per run, the IQM
-return at ``--steps`` and the AUC IQM [95 % bootstrap CI] over k = 0..K for each horizon K the run reaches (``—`` where it stops earlier), then the AUC of each seed's mean curve
-over tasks (with independent pre-training per seed: one number per pre-training run), and draws one panel per
-horizon: mean return with a 95 % band; runs of the same method are shades of its colour, lighter first.
+(``"UML-DIAYN=uml_diayn@results/point_nav/meta_test_ref/seed*/uml_diayn.csv"``).
+
+Prints, per run, the IQM return at ``--steps`` and the AUC IQM [95 % bootstrap CI] over k = 0..K for each horizon K
+the run reaches (``—`` where it stops earlier), then the AUC of each seed's mean curve over tasks (with independent
+pre-training per seed: one number per pre-training run), and draws one panel per horizon: mean return with a 95 %
+band; runs of the same method are shades of its colour, lighter first.
 
 With ``--paired``, every later run is also compared with the first task by task (runs of one seed meta-test the same
 held-out tasks): the mean per-task AUC difference (later − first) [95 % bootstrap CI over seeds × tasks] and on how
@@ -67,8 +69,8 @@ def load_seeds(csvs: list[Path], *, env: str, arm: str) -> dict[int, np.ndarray]
     rows = [r for r in all_rows if r["env"] == env and arm_label(r["method"], r["lr_schedule"]) == arm]
     if not rows:
         arms = sorted({(r["env"], arm_label(r["method"], r["lr_schedule"])) for r in all_rows})
-        raise SystemExit(f"{', '.join(map(str, csvs))}: no arm {arm!r} on env {env!r}; it has " + ", ".join(f"{a!r} on {e}" for e, a in arms)
-                         + ".")
+        available = ", ".join(f"{a!r} on {e}" for e, a in arms)
+        raise SystemExit(f"{', '.join(map(str, csvs))}: no arm {arm!r} on env {env!r}; it has {available}.")
     seeds = sorted({r["seed"] for r in rows})
     return {seed: run_matrix([r for r in rows if r["seed"] == seed], env=env, method=arm) for seed in seeds}
 
