@@ -112,7 +112,8 @@ def test_maml_recipe_keeps_everything_on_the_device(tmp_path, device, monkeypatc
 def test_diayn_recipe_keeps_everything_on_the_device(tmp_path, device, monkeypatch):
     seen = {}
     capture(monkeypatch, umrl.trainers.diayn, "save_diayn_checkpoint", seen)
-    capture(monkeypatch, umrl.trainers.diayn, "TensorDictReplayBuffer", seen)
+    capture(monkeypatch, umrl.trainers.diayn, "StackedDIAYNUpdate", seen)
+    capture(monkeypatch, umrl.trainers.diayn, "SeedReplay", seen)
     capture(monkeypatch, umrl.trainers.diayn, "evaluate_skills", seen)
     cfg = compose("diayn", [
         f"device={device}", "logger.backend=none", "progress=false", f"output_dir={tmp_path}", "num_skills=3",
@@ -122,11 +123,13 @@ def test_diayn_recipe_keeps_everything_on_the_device(tmp_path, device, monkeypat
         "eval.episodes_per_skill=1", "checkpoint.every=40"])
     umrl.trainers.diayn.train(cfg)
     saved = seen["save_diayn_checkpoint"][-1][1]
-    assert all(opt.state for opt in saved["optimizers"].values()), "the optimisers took no step"
-    buffer = seen["TensorDictReplayBuffer"][0][2]
-    assert len(buffer) == 40
-    assert_on(device, actor=saved["actor"], discriminator=saved["discriminator"], loss=saved["loss"],
-              optimizers=saved["optimizers"], buffer=buffer,
+    update = seen["StackedDIAYNUpdate"][0][2]
+    assert all(opt.state for opt in update.optimizers.values()), "the optimisers took no step"
+    replay = seen["SeedReplay"][0][2]
+    assert len(replay) == 40
+    assert_on(device, actor=saved["actor"], discriminator=saved["discriminator"], loss=update.loss,
+              optimizers={name: opt.state_dict() for name, opt in update.optimizers.items()},
+              buffer=replay.buffer.storage[:len(replay)], sample=replay.sample(),
               evaluations=[result for _, _, result in seen["evaluate_skills"]])
 
 

@@ -37,11 +37,11 @@ def test_run_checkpoint_resume_figure(tmp_path, env_name):
     recipe = load_recipe()
     result = recipe.train(tiny_config(tmp_path, f"env.name={env_name}"))
     assert 0.0 <= result["eval/final_state_accuracy"] <= 1.0
-    assert (tmp_path / "figures" / "skill_coverage.png").stat().st_size > 1000
-    assert (tmp_path / "figures" / "skill_coverage_80.png").is_file()
+    assert (tmp_path / "seed0" / "figures" / "skill_coverage.png").stat().st_size > 1000
+    assert (tmp_path / "seed0" / "figures" / "skill_coverage_80.png").is_file()
     first = load_diayn_checkpoint(tmp_path)
     assert first["counters"]["frames"] == 120 and first["counters"]["updates"] > 0
-    assert (tmp_path / "checkpoints" / "config.yaml").is_file()
+    assert (tmp_path / "checkpoints" / "config.yaml").is_file() and (tmp_path / "seed0" / "checkpoints").is_dir()
 
     resumed = recipe.train(tiny_config(tmp_path, f"env.name={env_name}", "resume=true", "collector.total_frames=200"))
     second = load_diayn_checkpoint(tmp_path)
@@ -82,7 +82,8 @@ def test_resume_without_checkpoint_fails_clearly(tmp_path):
 
 def test_exported_skills_load_like_the_run_and_refuse_resume(tmp_path):
     """python -m umrl.checkpoints.export_skills: the copy holds the run's actor and discriminator (equal tensors) and
-    its config, without replay buffer or optimisers; the loaders read it, a resume from it is refused by name."""
+    its config, without replay buffer or optimisers (those stay in the program's checkpoint); the loaders read it, a
+    resume from it is refused by name."""
     run, skills = tmp_path / "run", tmp_path / "skills"
     load_recipe().train(tiny_config(run))
     proc = subprocess.run([sys.executable, "-m", "umrl.checkpoints.export_skills", str(run), str(skills)],
@@ -90,15 +91,29 @@ def test_exported_skills_load_like_the_run_and_refuse_resume(tmp_path):
     written = skills / "checkpoints" / "step_120.pt"
     assert proc.stdout.strip() == str(written)
     source, copy = load_diayn_checkpoint(run), load_diayn_checkpoint(skills)
-    assert set(copy) == {"format", "meta", "config", "actor", "discriminator", "counters"}
-    assert "replay" in source and written.stat().st_size < (run / "checkpoints" / "step_120.pt").stat().st_size / 2
+    assert set(copy) == set(source) == {"format", "meta", "config", "actor", "discriminator", "counters"}
+    assert written.stat().st_size < (run / "checkpoints" / "step_120.pt").stat().st_size / 2
     assert (copy["meta"], copy["config"], copy["counters"]) == (source["meta"], source["config"], source["counters"])
-    assert (skills / "checkpoints" / "config.yaml").read_text() == (run / "checkpoints" / "config.yaml").read_text()
+    assert ((skills / "checkpoints" / "config.yaml").read_text()
+            == (run / "seed0" / "checkpoints" / "config.yaml").read_text())
     for load in (load_discriminator, load_skill_policy):
         for a, b in zip(load(run)[0].parameters(), load(skills)[0].parameters(), strict=True):
             torch.testing.assert_close(a, b, rtol=0, atol=0)
-    with pytest.raises(ValueError, match="resume=true: .*step_120.pt holds a run's skills only"):
+    with pytest.raises(ValueError, match="step_120.pt is not a multi-seed DIAYN checkpoint .*'umrl.diayn.v1'"):
         load_recipe().train(tiny_config(skills, "resume=true", "collector.total_frames=200"))
+
+
+def test_a_run_of_several_seeds_writes_each_seeds_skills(tmp_path):
+    """seeds=[0,2]: one program, a folder per seed that every loader reads; the run folder itself names them."""
+    result = load_recipe().train(tiny_config(tmp_path, "seeds=[0,2]"))
+    assert result["runs"] == [str(tmp_path / "seed0"), str(tmp_path / "seed2")]
+    assert {"seed0/eval/final_state_accuracy", "seed2/train/loss_qvalue"} <= set(result)
+    for seed in (0, 2):
+        state = load_diayn_checkpoint(tmp_path / f"seed{seed}")
+        assert state["config"]["seed"] == seed and state["counters"]["frames"] == 120
+        assert (tmp_path / f"seed{seed}" / "figures" / "skill_coverage.png").is_file()
+    with pytest.raises(ValueError, match="is a DIAYN run of 2 seeds: point to one seed's folder"):
+        load_discriminator(tmp_path)
 
 
 def test_cli_rejects_one_skill(tmp_path):

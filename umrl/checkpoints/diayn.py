@@ -1,36 +1,34 @@
-"""DIAYN checkpoints, written by ``recipes/diayn.py`` (format ``"umrl.diayn.v1"``).
+"""DIAYN checkpoints, written by ``recipes/diayn.py``: one file per seed (``"umrl.diayn.v1"``) and the program's
+state (``"umrl.diayn_seeds.v1"``).
 
-A checkpoint is a dict (stored by :mod:`umrl.checkpoint_file`):
+A run of seeds ``[s, ...]`` in ``<output_dir>`` writes, at every checkpoint:
 
-- ``"format"``: ``"umrl.diayn.v1"``;
-- ``"meta"``: ``env`` (name), ``obs_dim``, ``act_dim``, ``num_skills``, ``hidden`` (actor/Q widths),
-  ``discriminator_hidden``, ``discriminator_observation_key`` (``["observation"]``: D was trained on s_t; ``["next", "observation"]`` in
-  checkpoints written before DIAYN scored s_t),
-  ``discriminator_input_dims`` (``None``: D reads the whole observation; a list: only those dims; absent in
-  checkpoints written before the key, which read the whole observation);
-- ``"actor"``: state dict of :func:`umrl.modules.sac.make_skill_actor` ``(obs_dim, num_skills, act_dim,
+- ``<output_dir>/seed<s>/checkpoints/step_<frames>.pt`` for each seed, format ``"umrl.diayn.v1"``, a dict (stored by
+  :mod:`umrl.checkpoint_file`) of
+  ``"format"``; ``"meta"``: ``env`` (name), ``obs_dim``, ``act_dim``, ``num_skills``, ``hidden`` (actor/Q widths),
+  ``discriminator_hidden``, ``discriminator_observation_key`` (``["observation"]``: D was trained on s_t;
+  ``["next", "observation"]`` in checkpoints written before DIAYN scored s_t), ``discriminator_input_dims``
+  (``None``: D reads the whole observation; a list: only those dims; absent in checkpoints written before the key);
+  ``"actor"``: state dict of :func:`umrl.modules.sac.make_skill_actor` ``(obs_dim, num_skills, act_dim,
   hidden=hidden)``: reads ``"observation"`` and one-hot ``"skill"``, writes a tanh-Gaussian ``"action"`` in [-1, 1];
-- ``"discriminator"``: state dict of :func:`umrl.modules.discriminator.make_discriminator` ``(obs_dim,
-  num_skills, hidden=discriminator_hidden, input_dims=discriminator_input_dims)``;
-- ``"loss"``: state dict of the :class:`~umrl.objectives.diayn.DIAYNLoss` (actor, twin Q-networks and their targets,
-  discriminator, alpha), ``"optimizers"``: ``{"actor", "qvalue", "discriminator"[, "alpha"]}`` Adam state dicts;
-- ``"counters"``: ``frames`` (env steps), ``updates``, ``next_eval``, ``next_checkpoint``, ``update_credit``;
-- ``"random_metrics"``: the ``eval/random_*`` metrics of a uniformly random policy, scored by the run's initial
-  discriminator (a resumed run reports these instead of rescoring with the trained one; absent in checkpoints written
-  before the key);
-- ``"replay"``: :func:`umrl.runtime.replay_buffer_state` (TorchRL's ``state_dict``: sampler, writer, and the storage
-  cut to its filled rows);
-- ``"rng"``: :func:`umrl.runtime.rng_state` (torch, numpy, python); ``"envs"``: ``{"train", "eval"}``
-  :func:`umrl.runtime.env_state` (MuJoCo reset noise, transforms); ``"collector"``: ``{"traj_pool": {"traj_id"}}``,
-  the TorchRL collector's next trajectory id (the replay's ``("collector", "traj_ids")`` continue from it; absent in
-  checkpoints written before the key), all for a bit-identical ``resume=true`` (every tensor of the checkpoint);
-- ``"config"``: the resolved recipe config (also written beside it as ``config.yaml``).
+  ``"discriminator"``: state dict of :func:`umrl.modules.discriminator.make_discriminator` ``(obs_dim, num_skills,
+  hidden=discriminator_hidden, input_dims=discriminator_input_dims)``; ``"counters"``: ``frames`` (env steps of the
+  seed), ``updates``, ...; ``"config"``: the run's resolved config with ``seed`` set to this seed (also beside it as
+  ``config.yaml``). Every loader here, the MAML recipe's ``diayn_checkpoint`` and the suite read these.
+- ``<output_dir>/checkpoints/step_<frames>.pt``, format ``"umrl.diayn_seeds.v1"``, for ``resume=true``: ``"meta"``
+  (the above and ``seeds``), ``"loss"`` (the state dict of the
+  :class:`~umrl.objectives.stacked_diayn.StackedDIAYNLoss`: every seed's networks stacked, targets, alpha),
+  ``"optimizers"`` (``{"actor", "qvalue", "discriminator"[, "alpha"]}`` Adam state dicts), ``"counters"``
+  (``frames``, ``updates``, ``next_eval``, ``next_log``, ``next_checkpoint``, ``update_credit``),
+  ``"random_metrics"``, ``"replay"`` (:func:`umrl.runtime.replay_buffer_state` of the rows ``[S]``), ``"rng"``
+  (:func:`umrl.runtime.rng_state` with each seed's generator), ``"envs"`` (``{"train"}``:
+  :func:`umrl.runtime.env_state`, MuJoCo's reset noise per seed), ``"config"``.
 
-Files are ``<output_dir>/checkpoints/step_<frames>.pt``; the final one of a run is the latest.
+A single DIAYN checkpoint written before multi-seed runs (``"umrl.diayn.v1"`` with ``loss``, ``optimizers`` and
+``replay``) still loads everywhere a seed's file does. The loaders take a seed's file or folder, or a run's
+``output_dir`` when it holds one seed (:func:`seed_run_dir`).
 
-:func:`export_diayn_skills` copies a run's trained skills into a checkpoint of the same format that keeps only
-``format``, ``meta``, ``actor``, ``discriminator``, ``counters`` and ``config`` (≈ 1 MB for 2×300 networks, against
-tens of MB with the replay buffer): every loader reads it, ``resume=true`` refuses it.
+:func:`export_diayn_skills` copies a seed's skills (:data:`SKILL_ENTRIES`) into a file of the same format elsewhere.
 """
 from __future__ import annotations
 
@@ -53,12 +51,36 @@ DIAYN_FORMAT = CheckpointFormat(
     meta_keys=("env", "obs_dim", "act_dim", "num_skills", "hidden", "discriminator_hidden",
                "discriminator_observation_key", "discriminator_input_dims"),
 )
+DIAYN_SEEDS_FORMAT = CheckpointFormat("umrl.diayn_seeds.v1", "multi-seed DIAYN",
+                                      meta_keys=(*DIAYN_FORMAT.meta_keys, "seeds"))
 
 SKILL_ENTRIES = ("actor", "discriminator", "counters")
 """What :func:`export_diayn_skills` keeps besides ``format``, ``meta`` and ``config``."""
 
-__all__ = ["DIAYN_FORMAT", "SKILL_ENTRIES", "check_resumable", "export_diayn_skills", "load_diayn_checkpoint",
-           "load_discriminator", "load_skill_policy", "save_diayn_checkpoint", "skill_policy"]
+__all__ = ["DIAYN_FORMAT", "DIAYN_SEEDS_FORMAT", "SKILL_ENTRIES", "export_diayn_skills",
+           "load_diayn_checkpoint", "load_discriminator", "load_skill_policy", "save_diayn_checkpoint", "seed_run_dir",
+           "skill_policy"]
+
+
+def seed_run_dir(output_dir: str | os.PathLike, seed: int) -> Path:
+    """Seed ``seed``'s folder in a DIAYN run's ``output_dir``: ``<output_dir>/seed<seed>``."""
+    return Path(output_dir) / f"seed{seed}"
+
+
+def resolve_seed_run(path: str | os.PathLike) -> Path:
+    """``path``, or the seed's folder when ``path`` is (the ``checkpoints/`` folder of) a DIAYN run's ``output_dir``
+    holding one seed; ``ValueError`` naming the seed folders when it holds several."""
+    path = Path(path)
+    root = path.parent if path.name == "checkpoints" else path
+    if not root.is_dir():
+        return path
+    seeds = sorted(p for p in root.glob("seed*") if (p / "checkpoints").is_dir())
+    if len(seeds) == 1:
+        return seeds[0]
+    if len(seeds) > 1:
+        raise ValueError(f"{root} is a DIAYN run of {len(seeds)} seeds: point to one seed's folder, one of "
+                         f"{[str(p) for p in seeds]}.")
+    return path
 
 
 def save_diayn_checkpoint(
@@ -67,31 +89,18 @@ def save_diayn_checkpoint(
     meta: Mapping[str, Any],
     actor: torch.nn.Module,
     discriminator: torch.nn.Module,
-    loss: torch.nn.Module,
-    optimizers: Mapping[str, torch.optim.Optimizer],
     counters: Mapping[str, int | float],
-    random_metrics: Mapping[str, float],
-    replay: Mapping[str, Any],
-    rng: Mapping[str, Any],
-    envs: Mapping[str, Any],
-    collector: Mapping[str, Any],
     config: Any,
 ) -> Path:
-    """Write the DIAYN state above as ``step_<counters["frames"]>.pt`` (``replay``, ``rng`` and ``envs`` as taken by
-    ``ReplayBuffer.state_dict``, :func:`~umrl.runtime.rng_state` and :func:`~umrl.runtime.env_state`; ``collector``:
-    ``{"traj_pool": Collector.state_dict()["traj_pool"]}``)."""
-    return DIAYN_FORMAT.save(
-        checkpointer, counters["frames"], meta, config,
-        actor=actor.state_dict(), discriminator=discriminator.state_dict(), loss=loss.state_dict(),
-        optimizers={k: o.state_dict() for k, o in optimizers.items()}, counters=dict(counters),
-        random_metrics=dict(random_metrics), replay=dict(replay), rng=dict(rng), envs=dict(envs),
-        collector=dict(collector),
-    )
+    """Write one seed's skills (the format above) as ``step_<counters["frames"]>.pt``."""
+    return DIAYN_FORMAT.save(checkpointer, counters["frames"], meta, config, actor=actor.state_dict(),
+                             discriminator=discriminator.state_dict(), counters=dict(counters))
 
 
 def load_diayn_checkpoint(path: str | os.PathLike) -> dict:
-    """Load a DIAYN checkpoint: a ``step_*.pt`` file, a ``checkpoints/`` folder or a run's output_dir (latest)."""
-    return DIAYN_FORMAT.load(path)
+    """Load a seed's DIAYN checkpoint: a ``step_*.pt`` file, a ``checkpoints/`` folder, a seed's folder or the
+    ``output_dir`` of a run of one seed (the latest file)."""
+    return DIAYN_FORMAT.load(resolve_seed_run(path))
 
 
 def export_diayn_skills(source: str | os.PathLike, destination: str | os.PathLike) -> Path:
@@ -106,15 +115,6 @@ def export_diayn_skills(source: str | os.PathLike, destination: str | os.PathLik
     state = load_diayn_checkpoint(source)
     return DIAYN_FORMAT.save(Checkpointer(Path(destination) / "checkpoints"), state["counters"]["frames"],
                              state["meta"], state["config"], **{key: state[key] for key in SKILL_ENTRIES})
-
-
-def check_resumable(state: Mapping[str, Any], source: str | os.PathLike | None) -> None:
-    """Raise ``ValueError`` naming ``source`` if ``state`` is a skills-only copy (:func:`export_diayn_skills`): it has
-    no loss, optimisers or replay buffer to resume from."""
-    if "replay" not in state:
-        raise ValueError(f"resume=true: {source} holds a run's skills only (written by "
-                         "umrl.checkpoints.export_diayn_skills, without loss, optimisers and replay buffer); resume "
-                         "the run it was exported from, or train afresh with resume=false.")
 
 
 def load_discriminator(path: str | os.PathLike) -> tuple[TensorDictModule, int, int]:

@@ -14,7 +14,12 @@ from umrl.configs.common import (
 from umrl.configs.memory import Allocation, allocation_errors, step_bytes
 from umrl.configs.validate import boolean, group, int_list, integer, number
 from umrl.envs import get_env_spec
-from umrl.validation import InvalidValue
+from umrl.validation import SEED_MAX, InvalidValue
+
+
+def resolve_seeds(cfg) -> list[int]:
+    """The seeds a DIAYN run trains: ``seeds``, or ``[seed]`` when it is null."""
+    return list(cfg["seeds"]) if cfg["seeds"] is not None else [cfg["seed"]]
 
 
 @dataclass
@@ -34,8 +39,9 @@ class DIAYNEnvConfig(BatchedEnvConfig):
 
 @dataclass
 class CollectorConfig:
-    """``total_frames`` (null: the env's ``EnvSpec.diayn_frames``), ``frames_per_batch`` (null: one episode per env
-    copy, ``env.num_envs × env.horizon``) and ``init_random_frames``."""
+    """Per seed: ``total_frames`` (null: the env's ``EnvSpec.diayn_frames``), ``frames_per_batch`` between update
+    rounds (null: ``env.num_envs``, one step of each env copy, the reference's interleaving) and
+    ``init_random_frames``."""
 
     total_frames: int | None = integer(min=1)
     frames_per_batch: int | None = integer(min=1)
@@ -74,6 +80,8 @@ class EvalConfig:
 class DIAYNConfig(RunConfig):
     """Every key of ``umrl/configs/diayn.yaml`` (:class:`RunConfig`'s and these); the yaml's comments say what each does."""
 
+    seeds: list[int] | None = int_list(min=0, max=SEED_MAX, min_len=1, unique=True)
+    log_every: int = integer(min=1)
     env: DIAYNEnvConfig = group(DIAYNEnvConfig)
     num_skills: int | None = integer(min=2)
     network: NetworkConfig = group(NetworkConfig)
@@ -85,14 +93,14 @@ class DIAYNConfig(RunConfig):
 
     @staticmethod
     def fill_env_defaults(cfg: dict) -> None:
-        """Null ``env.horizon``, ``collector.total_frames`` and ``collector.frames_per_batch`` take the env's
-        reference values (see :class:`DIAYNEnvConfig` and :class:`CollectorConfig`); the reference budget is rounded
-        up to whole collector batches, as the collector runs it (point_nav's 50,000 frames: 51,200)."""
+        """Null ``env.horizon``, ``collector.total_frames`` and ``collector.frames_per_batch`` take their defaults
+        (see :class:`DIAYNEnvConfig` and :class:`CollectorConfig`); the env's reference budget is rounded up to whole
+        batches, as the trainer runs it."""
         spec, env, collector = get_env_spec(cfg["env"]["name"]), cfg["env"], cfg["collector"]
         if env["horizon"] is None:
             env["horizon"] = spec.diayn_horizon
         if collector["frames_per_batch"] is None:
-            collector["frames_per_batch"] = env["num_envs"] * env["horizon"]
+            collector["frames_per_batch"] = env["num_envs"]
         if collector["total_frames"] is None:
             batch = collector["frames_per_batch"]
             collector["total_frames"] = -(-spec.diayn_frames // batch) * batch
@@ -147,13 +155,14 @@ class DIAYNConfig(RunConfig):
 
 
 def memory_errors(cfg: dict) -> list[str]:
-    """``replay_buffer.size`` and ``collector.frames_per_batch`` transitions (observations, skill one-hots and action,
-    before and after each step) against the memory of ``device`` (:mod:`umrl.configs.memory`); ``cfg`` has its env
-    defaults filled."""
+    """``replay_buffer.size`` and ``collector.frames_per_batch`` transitions of every seed (observations, skill
+    one-hots and action, before and after each step) against the memory of ``device`` (:mod:`umrl.configs.memory`);
+    ``cfg`` has its env defaults filled."""
     name = cfg["env"]["name"]
     num_skills = cfg["num_skills"] or get_env_spec(name).num_skills
-    transition = step_bytes(name, extra_floats=2 * num_skills)
-    given = f"with env.name={name} and {num_skills} skills"
+    num_seeds = len(cfg["seeds"] or [cfg["seed"]])
+    transition = num_seeds * step_bytes(name, extra_floats=2 * num_skills)
+    given = f"with env.name={name}, {num_skills} skills and {num_seeds} seed(s)"
     return allocation_errors([
         Allocation("replay_buffer.size", cfg["replay_buffer"]["size"], transition, "replay buffer", given),
         Allocation("collector.frames_per_batch", cfg["collector"]["frames_per_batch"], transition, "collector batch",

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import itertools
 import os
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -171,7 +172,7 @@ class BatchedMujocoEnv(EnvBase):
             self._pool = ThreadPoolExecutor(num_threads) if num_threads > 1 else None
         data = mujoco.MjData(m)
         self._init_qpos, self._init_qvel = data.qpos.copy(), data.qvel.copy()
-        self._rng = np.random.default_rng(seed)
+        self._rngs = [np.random.default_rng(seed)]  # one per group of copies (seed_copies), else one for all
         self._make_specs()
 
     # ----------------------------------------------------------------------------------------------------- specs
@@ -260,15 +261,30 @@ class BatchedMujocoEnv(EnvBase):
         self._set_copies(ids[order], qpos[order], qvel[order], reset=False)
 
     # ----------------------------------------------------------------------------------------------- reset noise
+    def seed_copies(self, seeds: Sequence[int]) -> None:
+        """Draw the reset noise of each of ``len(seeds)`` equal groups of consecutive copies from its own generator,
+        seeded by ``seeds[g]``: a multi-seed run's copies of seed ``s`` see the noise of seed ``s`` alone, whatever
+        the other groups do (``seeds=[s]`` is ``set_seed(s)``)."""
+        B = self.batch_size[0]
+        if not seeds or B % len(seeds):
+            raise ValueError(f"seeds must split the {B} copies into equal groups, got {len(seeds)} seeds.")
+        self._rngs = [np.random.default_rng(seed) for seed in seeds]
+
     @property
-    def rng_state(self) -> dict:
+    def rng_state(self) -> dict | list[dict]:
         """State of the reset-noise generator (numpy ``PCG64`` ``bit_generator.state``: a new dict at each read; the
-        setter copies it and refuses another generator's state)."""
-        return self._rng.bit_generator.state
+        setter copies it and refuses another generator's state); a list of them after :meth:`seed_copies` with
+        several seeds."""
+        states = [rng.bit_generator.state for rng in self._rngs]
+        return states[0] if len(states) == 1 else states
 
     @rng_state.setter
-    def rng_state(self, state: dict) -> None:
-        self._rng.bit_generator.state = state
+    def rng_state(self, state: dict | list[dict]) -> None:
+        states = state if isinstance(state, list) else [state]
+        if len(states) != len(self._rngs):
+            raise ValueError(f"expected {len(self._rngs)} reset-noise generator states, got {len(states)}.")
+        for rng, one in zip(self._rngs, states):
+            rng.bit_generator.state = one
 
     def get_extra_state(self) -> dict:
         """``nn.Module`` extra state, so ``state_dict()`` carries the reset-noise generator."""
@@ -285,9 +301,12 @@ class BatchedMujocoEnv(EnvBase):
         B = self.batch_size[0]
         ids = np.arange(B) if mask is None else np.flatnonzero(mask.reshape(B).cpu().numpy())
         s = self.reset_noise_scale
-        # gymnasium's reset_model: uniform qpos noise, then standard-normal qvel noise, from one generator.
-        qpos = self._init_qpos + self._rng.uniform(low=-s, high=s, size=(len(ids), self.model.nq))
-        qvel = self._init_qvel + s * self._rng.standard_normal((len(ids), self.model.nv))
+        # gymnasium's reset_model: uniform qpos noise, then standard-normal qvel noise, from one generator per group
+        groups = np.split(ids, np.searchsorted(ids, np.arange(1, len(self._rngs)) * (B // len(self._rngs))))
+        qpos = np.concatenate([rng.uniform(low=-s, high=s, size=(len(g), self.model.nq))
+                               for rng, g in zip(self._rngs, groups)]) + self._init_qpos
+        qvel = np.concatenate([s * rng.standard_normal((len(g), self.model.nv))
+                               for rng, g in zip(self._rngs, groups)]) + self._init_qvel
         self._set_copies(ids, qpos, qvel, reset=True)
         return self._output(np.zeros(B), self._physics_at_reset(), np.zeros(B, dtype=bool))
 
@@ -335,7 +354,7 @@ class BatchedMujocoEnv(EnvBase):
         return out.to(self.device)
 
     def _set_seed(self, seed: int | None) -> None:
-        self._rng = np.random.default_rng(seed)
+        self._rngs = [np.random.default_rng(seed)]
 
     def close(self, *, raise_if_closed: bool = True) -> None:
         if self._pool is not None:

@@ -23,7 +23,7 @@ from umrl.modules.discriminator import discriminator_logits
 from umrl.transforms.discriminator_reward import check_skills, skill_reward
 from umrl.validation import check_keys
 
-__all__ = ["DIAYNLoss", "DIAYNUpdate", "make_diayn_optimizers"]
+__all__ = ["DIAYNLoss", "DIAYNUpdate", "UpdateRunner", "check_capturable", "make_diayn_optimizers"]
 
 
 class DIAYNLoss(LossModule):
@@ -282,39 +282,15 @@ class DIAYNUpdate:
         compile: bool | str = False,
         cudagraphs: bool = False,
     ):
-        if isinstance(compile, str) and compile not in COMPILE_MODES:
-            raise ValueError(f"compile mode {compile!r} is not one of {COMPILE_MODES} (or True / False).")
         device = next(loss.parameters()).device
+        check_capturable(optimizers, cudagraphs, device)
         if cudagraphs:
-            if device.type != "cuda":
-                raise ValueError(
-                    f"cudagraphs=True needs the loss on a CUDA device, its parameters are on {device}; "
-                    "pass cudagraphs=False (recipe: optim.cudagraphs=false)."
-                )
-            eager = [name for name, opt in optimizers.items()
-                     if not all(group.get("capturable", False) for group in opt.param_groups)]
-            if eager:
-                raise ValueError(
-                    f"cudagraphs=True needs capturable optimisers; {eager} are not: build them with "
-                    "make_diayn_optimizers(..., capturable=True)."
-                )
             _distribution_kwargs_to(loss.sac_loss.actor_network, device)  # held outside the module tree
         self.loss = loss
         self.optimizers = dict(optimizers)
         self.target_updater = SoftUpdate(loss.sac_loss, tau=tau)
-        self.compile_mode = None
-        if compile:
-            self.compile_mode = compile if isinstance(compile, str) else (
-                "default" if cudagraphs else "reduce-overhead")
-        self.cudagraphs = cudagraphs
-        # CUDA graphs (ours, or inductor's in these modes) reuse their output buffers at the next call
-        self._static_outputs = cudagraphs or self.compile_mode in ("reduce-overhead", "max-autotune")
-        step = self._step
-        if self.compile_mode is not None:
-            step = compile_with_warmup(step, mode=self.compile_mode, warmup=1)
-        if cudagraphs:
-            step = CudaGraphModule(step, in_keys=[], out_keys=[], warmup=5, device=device)
-        self._update = step
+        self.runner = UpdateRunner(self._step, compile=compile, cudagraphs=cudagraphs, device=device)
+        self.compile_mode, self.cudagraphs = self.runner.compile_mode, cudagraphs
 
     def _step(self, batch: TensorDictBase) -> TensorDictBase:
         out = self.loss(batch)
@@ -324,6 +300,49 @@ class DIAYNUpdate:
             optimizer.zero_grad(set_to_none=True)
         self.target_updater.step()
         return out.detach()
+
+    def __call__(self, batch: TensorDictBase) -> TensorDictBase:
+        return self.runner(batch)
+
+
+def check_capturable(optimizers: Mapping[str, torch.optim.Optimizer], cudagraphs: bool, device: torch.device) -> None:
+    """Refuse ``cudagraphs=True`` off CUDA or with optimisers that are not ``capturable``."""
+    if not cudagraphs:
+        return
+    if device.type != "cuda":
+        raise ValueError(f"cudagraphs=True needs the loss on a CUDA device, its parameters are on {device}; "
+                         "pass cudagraphs=False (recipe: optim.cudagraphs=false).")
+    eager = [name for name, opt in optimizers.items()
+             if not all(group.get("capturable", False) for group in opt.param_groups)]
+    if eager:
+        raise ValueError(f"cudagraphs=True needs capturable optimisers; {eager} are not: build them with "
+                         "capturable=True.")
+
+
+class UpdateRunner:
+    """Runs one update function ``step(batch) -> TensorDict`` eagerly, under ``torch.compile`` and/or captured in a
+    CUDA graph (:class:`tensordict.nn.CudaGraphModule`), modelled on TorchRL's ``sota-implementations/sac``.
+
+    ``compile``: ``True`` picks TorchRL's mode rule (``"default"`` with CUDA graphs, else ``"reduce-overhead"``), a
+    string is the mode (one of :data:`COMPILE_MODES`). Outputs of static CUDA-graph buffers are cloned, so they
+    survive the next call; a compilation failure is re-raised naming the switch that turns it off.
+    """
+
+    def __init__(self, step, *, compile: bool | str = False, cudagraphs: bool = False,
+                 device: torch.device | str = "cpu"):
+        if isinstance(compile, str) and compile not in COMPILE_MODES:
+            raise ValueError(f"compile mode {compile!r} is not one of {COMPILE_MODES} (or True / False).")
+        self.compile_mode = None
+        if compile:
+            self.compile_mode = compile if isinstance(compile, str) else (
+                "default" if cudagraphs else "reduce-overhead")
+        # CUDA graphs (ours, or inductor's in these modes) reuse their output buffers at the next call
+        self._static_outputs = cudagraphs or self.compile_mode in ("reduce-overhead", "max-autotune")
+        if self.compile_mode is not None:
+            step = compile_with_warmup(step, mode=self.compile_mode, warmup=1)
+        if cudagraphs:
+            step = CudaGraphModule(step, in_keys=[], out_keys=[], warmup=5, device=torch.device(device))
+        self._update = step
 
     def __call__(self, batch: TensorDictBase) -> TensorDictBase:
         if self._static_outputs:

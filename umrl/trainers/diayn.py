@@ -1,27 +1,35 @@
-"""DIAYN on a reward-free env: skill-conditioned SAC + a skill discriminator (the UMRL task proposal).
+"""DIAYN on a reward-free env for S seeds at once: skill-conditioned SAC + a skill discriminator (the UMRL proposal).
 
-The command line is ``recipes/diayn.py``; from Python, :class:`DIAYNTrainer` (``step``, ``checkpoint``, ``log``,
-``train``) on a composed config (:func:`umrl.trainers.compose`), or ``umrl.trainers.train("diayn", overrides)``.
+The command line is ``recipes/diayn.py`` (``seed=0``, or ``seeds=[0,1,2]`` for several in one program); from Python,
+:class:`DIAYNTrainer` (``step``, ``checkpoint``, ``log``, ``train``) on a composed config
+(:func:`umrl.trainers.compose`), or ``umrl.trainers.train("diayn", overrides)``.
 
-Data flow: ``make_env`` -> ``SkillTransform`` (one uniform one-hot skill per episode) -> ``DiscriminatorReward``
-(log D(z|s') + log K, for the logged returns) -> TorchRL ``Collector`` -> replay buffer -> ``DIAYNLoss`` (relabels
-every sampled batch with the current discriminator, SAC + discriminator cross-entropy) -> ``DIAYNUpdate`` (Adam steps,
-target Q-networks by ``SoftUpdate``; ``optim.compile`` / ``optim.cudagraphs`` on a GPU).
+Seeds as a batch dimension: the S seeds' networks are stacked (:class:`~umrl.objectives.stacked_diayn.StackedDIAYNLoss`,
+one batched matmul per layer for all seeds), their env copies are one batched env (``env.num_envs`` copies per seed),
+their transitions one replay of rows ``[S]`` (:class:`~umrl.seed_replay.SeedReplay`). Each seed draws everything
+random from its own streams (a torch generator: actions, replay indices, action noise, skills at reset; a numpy
+generator: MuJoCo's reset noise), and its networks are initialised as a single-seed run initialises them, so seed
+``s``'s run does not depend on which seeds share the program (``tests/test_diayn_seeds.py``).
 
-Logged (namespaced): ``train/`` losses, ``discriminator_accuracy`` (on replay samples), ``pseudo_reward``,
-``entropy``, ``episode_return`` (undiscounted pseudo-return of finished episodes); ``eval/`` on fresh rollouts of
-every skill: ``final_state_accuracy`` (argmax D(z|s_T) == z), spread of the skills' end points
-(``end_pairwise_distance``, ``centroid_pairwise_distance``, ``centroid_hull_area`` in 2-D, ``centroid_std``/``range``
-for half_cheetah's velocities), ``task_distance_median``/``max`` (from each held-out evaluation task to the nearest
-skill centroid), the same for a uniformly random policy under ``eval/random_*`` (once);
-``time/`` env steps/s, updates/s, elapsed seconds. The coverage figure goes to ``<output_dir>/figures/``.
+Schedule: each :meth:`DIAYNTrainer.step` takes ``collector.frames_per_batch`` env steps per seed (default
+``env.num_envs``: one step of each copy), then ``optim.updates_per_frame`` fused updates per new frame: with the
+defaults one env step, then one update, as DIAYN's reference code (``sac/algos/base.py``'s loop with
+``n_train_repeat=1``). A larger ``collector.frames_per_batch`` (e.g. ``env.num_envs × env.horizon``) is the bulk
+collect-then-update schedule. The first ``collector.init_random_frames`` frames take uniform random actions.
 
-Checkpoints: ``<output_dir>/checkpoints/step_<frames>.pt`` every ``checkpoint.every`` frames and at the end, format
-``umrl.diayn.v1`` documented in :mod:`umrl.checkpoints.diayn`; load the results with
-``umrl.checkpoints.load_discriminator(path)`` -> (D, num_skills, obs_dim) and ``load_skill_policy(path)`` ->
-(actor, num_skills, obs_dim). ``resume=true`` restores networks, optimisers, counters, the replay buffer, every RNG,
-the envs' reset noise and the collector's trajectory counter: the resumed run finishes bit-identical to an
-uninterrupted one, in every tensor of its checkpoint (see :func:`train`).
+Logged (namespaced; with several seeds each seed's under ``seed<s>/``): ``train/`` losses, ``discriminator_accuracy``
+(on replay samples), ``pseudo_reward``, ``entropy``, ``episode_return`` (undiscounted pseudo-return of finished
+episodes); ``eval/`` on fresh rollouts of every skill: ``final_state_accuracy`` (argmax D(z|s_T) == z), spread of the
+skills' end points (``end_pairwise_distance``, ``centroid_pairwise_distance``, ``centroid_hull_area`` in 2-D,
+``centroid_std``/``range`` for half_cheetah's velocities), ``task_distance_median``/``max``, the same for a uniformly
+random policy under ``eval/random_*`` (once); ``time/`` env steps/s and seed-updates/s (all seeds), elapsed seconds.
+
+Files: per seed ``<output_dir>/seed<s>/checkpoints/step_<frames>.pt`` (format ``umrl.diayn.v1`` with the seed's
+skills: every DIAYN loader, the MAML recipe's ``diayn_checkpoint`` and the suite read it) and
+``<output_dir>/seed<s>/figures/``; the program's whole state for ``resume=true`` in
+``<output_dir>/checkpoints/step_<frames>.pt`` (format ``umrl.diayn_seeds.v1``, :mod:`umrl.checkpoints.diayn`):
+networks, Adam states, counters, the replay, every generator and the env's reset noise. A resumed run finishes
+bit-identical to an uninterrupted one in every tensor of its checkpoint.
 """
 from __future__ import annotations
 
@@ -30,20 +38,23 @@ from pathlib import Path
 
 import torch
 import tqdm
-from omegaconf import DictConfig
-from torchrl.collectors import Collector
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-from torchrl.envs import RewardSum
+from omegaconf import DictConfig, OmegaConf
+from torchrl.envs import TransformedEnv
 
-from umrl.checkpoints.diayn import DIAYN_FORMAT, check_resumable, save_diayn_checkpoint
+from umrl.checkpoints.diayn import (
+    DIAYN_SEEDS_FORMAT,
+    save_diayn_checkpoint,
+    seed_run_dir,
+)
 from umrl.checkpoints.format import check_budget_left
 from umrl.configs import RESUME_ALLOW, check_resume, validate
-from umrl.configs.diayn import DIAYNConfig
+from umrl.configs.diayn import DIAYNConfig, resolve_seeds
 from umrl.envs import get_env_spec, make_env
-from umrl.envs.threads import batches_beside_physics
+from umrl.envs.threads import torch_threads_beside_physics
 from umrl.modules.discriminator import make_discriminator
 from umrl.modules.sac import make_skill_actor, make_skill_qvalue
-from umrl.objectives.diayn import DIAYNLoss, DIAYNUpdate, make_diayn_optimizers
+from umrl.objectives.diayn import DIAYNLoss
+from umrl.objectives.stacked_diayn import StackedDIAYNLoss, StackedDIAYNUpdate
 from umrl.runtime import (
     Checkpointer,
     check_finite,
@@ -57,15 +68,19 @@ from umrl.runtime import (
     make_logger,
     replay_buffer_state,
     rng_state,
-    seed_everything,
     set_rng_state,
 )
+from umrl.seed_replay import SeedReplay
 from umrl.skill_coverage import coverage_metrics, evaluate_skills, plot_coverage
-from umrl.transforms.discriminator_reward import DiscriminatorReward
+from umrl.transforms.discriminator_reward import skill_reward
 from umrl.transforms.skill import SkillTransform
 from umrl.validation import resolve_device
 
 __all__ = ["DIAYNTrainer", "evaluate", "make_skill_env", "resolve_num_skills", "train"]
+
+TRANSITION_KEYS = ("observation", "skill", "action", ("next", "observation"), ("next", "skill"),
+                   ("next", "terminated"))
+"""What the replay keeps of each env step (what :class:`StackedDIAYNLoss` reads, its noise aside)."""
 
 
 def resolve_num_skills(cfg: DictConfig) -> int:
@@ -73,206 +88,325 @@ def resolve_num_skills(cfg: DictConfig) -> int:
     return cfg.num_skills if cfg.num_skills is not None else get_env_spec(cfg.env.name).num_skills
 
 
-def make_skill_env(cfg: DictConfig, num_envs: int, num_skills: int, seed: int, discriminator=None):
-    env = make_env(cfg.env.name, num_envs, seed=seed, device=resolve_device("device", cfg.device), horizon=cfg.env.horizon,
-                   backend=cfg.env.backend)
-    env.append_transform(SkillTransform(num_skills))
-    if discriminator is not None:
-        env.append_transform(DiscriminatorReward(discriminator, num_skills))
-        env.append_transform(RewardSum())
+def make_skill_env(cfg: DictConfig, num_envs: int, num_skills: int, seed: int, generators=None):
+    """The DIAYN env: ``make_env`` + a :class:`SkillTransform` (skills from ``generators``, one per equal group of
+    copies, when given)."""
+    env = make_env(cfg.env.name, num_envs, seed=seed, device=resolve_device("device", cfg.device),
+                   horizon=cfg.env.horizon, backend=cfg.env.backend)
+    env.append_transform(SkillTransform(num_skills, generators=generators))
     return env
 
 
-def evaluate(cfg, env, actor, discriminator, num_skills, step, figure_path, logger, baseline) -> dict:
-    """Fresh rollouts of every skill: coverage metrics, final-state accuracy, the figure at ``figure_path``; the
-    training's random generators do not move (a resumed run draws what an uninterrupted one draws)."""
+def seed_reset_noise(env, seeds: list[int], backend: str) -> None:
+    """Give each seed's group of copies of ``env`` its own reset-noise stream (MuJoCo's batched env: ``seed_copies``);
+    point_nav starts deterministically; gymnasium's vector env (``env.backend=gym``) with several seeds is refused."""
+    base = env.base_env
+    if hasattr(base, "seed_copies"):
+        base.seed_copies(seeds)
+    elif len(seeds) > 1 and backend == "gym" and isinstance(base, TransformedEnv):
+        raise ValueError(f"env.backend={backend} cannot give each of {len(seeds)} seeds its own reset noise; "
+                         "use env.backend=default (the batched MuJoCo env) for several seeds.")
+
+
+SIMD_BLOCK = 64
+"""Elements per seed are padded to a multiple of this in :func:`seedwise_tanh_normal` (a whole number of the widest
+vectorised loop's blocks: 16 float32 lanes, unrolled)."""
+
+
+def seedwise_tanh_normal(params: torch.Tensor, noise: torch.Tensor, scale_map) -> torch.Tensor:
+    """``tanh(loc + scale * noise)`` of every seed's policy head ``params`` ``[S, M, 2 act]`` (``loc`` and the raw
+    scale, mapped by ``scale_map``, a TorchRL ``NormalParamExtractor``) with ``noise`` ``[S, M, act]`` -> ``[S, M, act]``.
+
+    The arithmetic of :func:`~umrl.objectives.stacked_diayn.tanh_normal_sample`, on each seed's elements padded to a
+    whole number of :data:`SIMD_BLOCK` blocks: torch's element-wise kernels run a vectorised loop over the flattened
+    tensor and a scalar loop over its tail, and the two round ``tanh`` and ``softplus`` differently by an ulp, so
+    unpadded, the same seed's action would depend on how many seeds come before it (measured: 1.2e-7).
+    """
+    S, M, width = noise.shape
+    size = M * width
+    pad = -size % SIMD_BLOCK
+
+    def padded(x: torch.Tensor) -> torch.Tensor:
+        return torch.nn.functional.pad(x.reshape(S, size), (0, pad))
+
+    loc, raw_scale = params.chunk(2, -1)
+    scale = scale_map.scale_mapping(padded(raw_scale)).clamp_min(scale_map.scale_lb)
+    return torch.tanh(padded(loc) + scale * padded(noise))[:, :size].reshape(S, M, width)
+
+
+def evaluate(cfg, env, actor, discriminator, num_skills, step, figure_path, logger, baseline, seed: int,
+             prefix: str = "") -> dict:
+    """Fresh rollouts of every skill of one seed: coverage metrics, final-state accuracy, the figure at
+    ``figure_path``. The rollouts draw from generators seeded by ``seed`` and the frame count alone (the training's
+    generators do not move): a seed's evaluation is the same whichever seeds share the program."""
+    env.set_seed(seed + 10_000)
     with isolated_rng():
+        torch.manual_seed(seed + step)
         result = evaluate_skills(env, actor, env_name=cfg.env.name, num_skills=num_skills,
                                  episodes_per_skill=cfg.eval.episodes_per_skill, horizon=cfg.env.horizon)
     eval_tasks = get_env_spec(cfg.env.name).eval_tasks()
-    metrics = {f"eval/{k}": v for k, v in coverage_metrics(result, num_skills, discriminator, eval_tasks).items()}
+    metrics = {f"{prefix}eval/{k}": v
+               for k, v in coverage_metrics(result, num_skills, discriminator, eval_tasks).items()}
     figure = plot_coverage(result["end_point"], figure_path, eval_tasks=eval_tasks, skills=result["skill"],
                            baseline=baseline["end_point"],
-                           title=f"DIAYN {cfg.env.name}, {num_skills} skills, {step} env steps")
-    log_image(logger, "eval/skill_coverage", figure, step)
+                           title=f"DIAYN {cfg.env.name} seed {seed}, {num_skills} skills, {step} env steps")
+    log_image(logger, f"{prefix}eval/skill_coverage", figure, step)
     return metrics
 
 
+def seed_networks(cfg: DictConfig, seed: int, obs_dim: int, act_dim: int, num_skills: int) -> DIAYNLoss:
+    """Seed ``seed``'s actor, twin Q and discriminator, initialised from ``torch.manual_seed(seed)`` in a forked
+    generator (the same weights whichever seeds share the program), as a TorchRL-contract :class:`DIAYNLoss`."""
+    disc_dims = (None if cfg.network.discriminator_input_dims is None
+                 else list(cfg.network.discriminator_input_dims))
+    hidden = list(cfg.network.hidden)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        actor = make_skill_actor(obs_dim, num_skills, act_dim, hidden=hidden)
+        discriminator = make_discriminator(obs_dim, num_skills, hidden=list(cfg.network.discriminator_hidden),
+                                           input_dims=disc_dims)
+        qvalue = make_skill_qvalue(obs_dim, num_skills, act_dim, hidden=hidden)
+        return DIAYNLoss(actor, qvalue, discriminator, num_skills=num_skills, alpha_init=cfg.optim.alpha,
+                         fixed_alpha=cfg.optim.fixed_alpha, target_entropy=-float(act_dim))
+
+
 class DIAYNTrainer:
-    """DIAYN built from a config (checked against :class:`~umrl.configs.diayn.DIAYNConfig` first).
+    """DIAYN for ``seeds`` (or ``[seed]``) from a config (checked against :class:`~umrl.configs.diayn.DIAYNConfig`).
 
-    Construction seeds every RNG (``cfg.seed``), builds the networks, the loss and its update, the training and
-    evaluation envs, the collector and the replay buffer, evaluates a uniformly random policy (logged once under
-    ``eval/random_*``), and with ``cfg.resume`` restores the latest checkpoint (:meth:`load_state_dict`).
+    Construction builds every seed's networks (:func:`seed_networks`), stacks them into one loss and update, builds
+    the batched training env (``env.num_envs`` copies per seed), the evaluation env and the replay, scores a
+    uniformly random policy with each seed's initial discriminator (logged once under ``eval/random_*``), and with
+    ``cfg.resume`` restores the latest program checkpoint (:meth:`load_state_dict`).
 
-    :meth:`step` takes one collector batch: into the replay, then ``optim.updates_per_frame`` updates per new frame,
-    an evaluation when one is due; it returns the batch's metrics. :meth:`checkpoint` saves and restarts the
-    collector's episodes (TorchRL cannot serialise in-flight episodes, so an uninterrupted run restarts them at every
-    checkpoint exactly as a resumed one does; with the default batch of one episode per env copy nothing is cut).
-    :meth:`train` steps to ``collector.total_frames``, logging, checkpointing every ``checkpoint.every`` frames and
-    at the end, then evaluates the final skills. A resumed run finishes bit-identical to an uninterrupted one; a
-    config that differs from the checkpoint's beyond ``umrl.configs.RESUME_ALLOW`` (or in ``checkpoint.every``) is
-    refused. Nothing process-wide is set (:mod:`umrl.process`).
+    :meth:`step` takes ``collector.frames_per_batch`` env steps per seed, then the updates they earn, and an
+    evaluation when one is due; :meth:`checkpoint` saves the program and each seed's skills, then restarts the
+    episodes (so an uninterrupted run continues exactly as a resumed one; with episodes of a whole number of
+    checkpoint intervals nothing is cut); :meth:`train` steps to ``collector.total_frames`` per seed. A config that
+    differs from the checkpoint's beyond ``umrl.configs.RESUME_ALLOW`` (or in ``checkpoint.every``) is refused.
+    Nothing process-wide is set (:mod:`umrl.process`).
     """
 
     def __init__(self, cfg: DictConfig):
         self.cfg = cfg = validate(cfg, DIAYNConfig)
+        self.seeds = seeds = resolve_seeds(cfg)
         self.num_skills = num_skills = resolve_num_skills(cfg)
-        seed_everything(cfg.seed)
-        device = torch.device(resolve_device("device", cfg.device))  # networks, loss, replay storage and envs
+        self.device = device = torch.device(resolve_device("device", cfg.device))
         self.output_dir = Path(cfg.output_dir)
         self.checkpointer = Checkpointer(self.output_dir / "checkpoints", keep_all=cfg.checkpoint.keep_all)
+        self.seed_checkpointers = [Checkpointer(seed_run_dir(self.output_dir, s) / "checkpoints",
+                                                keep_all=cfg.checkpoint.keep_all) for s in seeds]
+        S, n = len(seeds), cfg.env.num_envs
 
-        # --- networks, loss, optimisers ---------------------------------------------------------------
         env_spec = get_env_spec(cfg.env.name)
-        obs_dim, act_dim = env_spec.obs_dim, env_spec.act_dim
-        hidden, disc_hidden = list(cfg.network.hidden), list(cfg.network.discriminator_hidden)
+        self.obs_dim, self.act_dim = obs_dim, act_dim = env_spec.obs_dim, env_spec.act_dim
         disc_dims = (None if cfg.network.discriminator_input_dims is None
                      else list(cfg.network.discriminator_input_dims))
-        self.meta = {"env": cfg.env.name, "obs_dim": obs_dim, "act_dim": act_dim, "num_skills": num_skills,
-                     "hidden": hidden, "discriminator_hidden": disc_hidden,
-                     "discriminator_observation_key": ["observation"],
-                     "discriminator_input_dims": disc_dims}
-        # FileNotFoundError says what is missing; ConfigError lists changed keys; ValueError if format or meta differ
-        # the collector restarts its episodes at every checkpoint: a changed checkpoint.every would continue another
-        # run
+        self.seed_meta = {"env": cfg.env.name, "obs_dim": obs_dim, "act_dim": act_dim, "num_skills": num_skills,
+                          "hidden": list(cfg.network.hidden),
+                          "discriminator_hidden": list(cfg.network.discriminator_hidden),
+                          "discriminator_observation_key": ["observation"], "discriminator_input_dims": disc_dims}
+        self.meta = {**self.seed_meta, "seeds": list(seeds)}
+        # the episodes restart at every checkpoint: a changed checkpoint.every would continue another run
         allow = [key for key in RESUME_ALLOW if key != "checkpoint.every"]
-        state = (DIAYN_FORMAT.load_for_resume(self.checkpointer, self.meta,
-                                              lambda saved: check_resume(saved, cfg, allow))
+        state = (DIAYN_SEEDS_FORMAT.load_for_resume(self.checkpointer, self.meta,
+                                                    lambda saved: check_resume(saved, cfg, allow))
                  if cfg.resume else None)
-        if state is not None:
-            check_resumable(state, self.checkpointer.latest())
-        # initialised on the CPU (the same weights on every device), then moved before the loss copies their parameters
-        self.actor = make_skill_actor(obs_dim, num_skills, act_dim, hidden=hidden).to(device)
-        self.discriminator = make_discriminator(obs_dim, num_skills, hidden=disc_hidden,
-                                                input_dims=disc_dims).to(device)
-        qvalue = make_skill_qvalue(obs_dim, num_skills, act_dim, hidden=hidden).to(device)
-        self.loss = DIAYNLoss(self.actor, qvalue, self.discriminator, num_skills=num_skills,
-                              alpha_init=cfg.optim.alpha, fixed_alpha=cfg.optim.fixed_alpha,
-                              target_entropy=-float(act_dim)).to(device)
-        self.loss.make_value_estimator(gamma=cfg.optim.gamma)
-        self.optimizers = make_diayn_optimizers(self.loss, lr=cfg.optim.lr, discriminator_lr=cfg.optim.discriminator_lr,
-                                                capturable=cfg.optim.cudagraphs)
-        # before the restore: TorchRL's SoftUpdate copies the online Q-networks into the targets when it is built
-        self.update = DIAYNUpdate(self.loss, self.optimizers, tau=cfg.optim.tau, compile=cfg.optim.compile,
-                                  cudagraphs=cfg.optim.cudagraphs)
-        self.counters = {"frames": 0, "updates": 0, "next_eval": cfg.eval.every,
+
+        # --- networks, loss, optimisers: each seed's as a single-seed run builds them, then stacked --------
+        self.seed_losses = [seed_networks(cfg, s, obs_dim, act_dim, num_skills).to(device) for s in seeds]
+        self.loss = StackedDIAYNLoss.from_losses(self.seed_losses, gamma=cfg.optim.gamma).to(device)
+        self.update = StackedDIAYNUpdate(self.loss, lr=cfg.optim.lr, discriminator_lr=cfg.optim.discriminator_lr,
+                                         tau=cfg.optim.tau)
+        self.generators = [torch.Generator(device=device).manual_seed(s) for s in seeds]
+        self.counters = {"frames": 0, "updates": 0, "next_eval": cfg.eval.every, "next_log": cfg.log_every,
                          "next_checkpoint": cfg.checkpoint.every, "update_credit": 0.0}
+        self._interval = self._new_interval()
         if state is not None:
             self.loss.load_state_dict(state["loss"])
-            for name, optimizer in self.optimizers.items():
+            for name, optimizer in self.update.optimizers.items():
                 optimizer.load_state_dict(state["optimizers"][name])
             self.counters.update(state["counters"])
             check_budget_left("collector.total_frames", cfg.collector.total_frames, self.counters["frames"], "frames",
                               self.output_dir)
 
-        # --- data -------------------------------------------------------------------------------------
-        self.env = make_skill_env(cfg, cfg.env.num_envs, num_skills, cfg.seed, self.discriminator)
-        self.eval_env = make_skill_env(cfg, num_skills * cfg.eval.episodes_per_skill, num_skills, cfg.seed + 10_000)
-        remaining = cfg.collector.total_frames - self.counters["frames"]
-        self.collector = Collector(
-            self.env, self.actor, frames_per_batch=cfg.collector.frames_per_batch, total_frames=remaining,
-            init_random_frames=max(0, cfg.collector.init_random_frames - self.counters["frames"]),
-            auto_register_policy_transforms=False,
-        )
-        self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(cfg.replay_buffer.size, device=device),
-                                             batch_size=cfg.replay_buffer.batch_size)
+        # --- data ---------------------------------------------------------------------------------------
+        self.env = make_skill_env(cfg, S * n, num_skills, seeds[0], self.generators)
+        seed_reset_noise(self.env, seeds, cfg.env.backend)
+        self.eval_env = make_skill_env(cfg, num_skills * cfg.eval.episodes_per_skill, num_skills, seeds[0] + 10_000)
+        self.replay = SeedReplay(cfg.replay_buffer.size, batch_size=cfg.replay_buffer.batch_size,
+                                 generators=self.generators, act_dim=act_dim, device=device)
         self.warmup = max(cfg.collector.init_random_frames, cfg.replay_buffer.batch_size)
+        self.episode_return = torch.zeros(S * n, device=device)
 
         self.logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, config=cfg, log_dir=self.output_dir)
+        self.eval_env.set_seed(seeds[0] + 10_000)
         with isolated_rng():
+            torch.manual_seed(seeds[0])
             self.baseline = evaluate_skills(self.eval_env, None, env_name=cfg.env.name, num_skills=num_skills,
                                             episodes_per_skill=cfg.eval.episodes_per_skill, horizon=cfg.env.horizon)
-        if state is not None and "random_metrics" in state:  # scored by the initial discriminator, logged once
+        if state is not None:  # scored by the initial discriminators, logged once
             self.random_metrics = dict(state["random_metrics"])
         else:
-            self.random_metrics = {f"eval/random_{k}": v for k, v in coverage_metrics(
-                self.baseline, num_skills, self.discriminator, env_spec.eval_tasks()).items()}
+            self.random_metrics = {}
+            for i in range(S):
+                scores = coverage_metrics(self.baseline, num_skills, self.seed_losses[i].discriminator,
+                                          env_spec.eval_tasks())
+                self.random_metrics.update({f"{self.prefix(i)}eval/random_{k}": v for k, v in scores.items()})
             log_metrics(self.logger, self.random_metrics, self.counters["frames"])
-        if state is not None:  # after everything that draws while setting up: the loop starts where the saved one stood
+        if state is not None:
             self.load_state_dict(state)
-        self._batches = batches_beside_physics(self.collector, self.env)
+        self._carry = self.env.reset()
         self.start_time = time.perf_counter()
+
+    def prefix(self, index: int) -> str:
+        """The metric prefix of seed ``seeds[index]``: none for a single seed, ``seed<s>/`` for several."""
+        return "" if len(self.seeds) == 1 else f"seed{self.seeds[index]}/"
 
     @property
     def done(self) -> bool:
-        """Whether the budget (``collector.total_frames``) is reached."""
+        """Whether the budget (``collector.total_frames`` per seed) is reached."""
         return self.counters["frames"] >= self.cfg.collector.total_frames
 
     def state_dict(self) -> dict:
-        """Networks (the loss's), optimisers, counters, the random policy's metrics, the replay buffer, every RNG,
-        both envs' reset noise and the collector's trajectory counter."""
+        """Stacked networks, Adam states, counters, the random policy's metrics, the replay, every generator (the
+        global ones and each seed's) and the training env's state (reset noise)."""
         return {"loss": self.loss.state_dict(),
-                "optimizers": {name: opt.state_dict() for name, opt in self.optimizers.items()},
+                "optimizers": {name: opt.state_dict() for name, opt in self.update.optimizers.items()},
                 "counters": dict(self.counters), "random_metrics": dict(self.random_metrics),
-                "replay": replay_buffer_state(self.buffer), "rng": rng_state(),
-                "envs": {"train": env_state(self.env), "eval": env_state(self.eval_env)},
-                "collector": {"traj_pool": self.collector.state_dict()["traj_pool"]}}
+                "replay": replay_buffer_state(self.replay.buffer), "rng": rng_state(**self._named_generators()),
+                "envs": {"train": env_state(self.env)}}
+
+    def _named_generators(self) -> dict[str, torch.Generator]:
+        return {f"seed{s}": g for s, g in zip(self.seeds, self.generators)}
 
     def load_state_dict(self, state: dict) -> None:
-        """Restore the replay buffer, the envs' and RNGs' state and the collector's trajectory counter, and restart
-        the collector's episodes as the saved run did right after saving (networks, optimisers and counters are
-        restored at construction, before the collector is built from them)."""
-        load_replay_buffer_state(self.buffer, state["replay"])
+        """Restore the replay, the generators and the env's state (networks, optimisers and counters are restored at
+        construction); the episodes then restart as the saved run's did right after saving."""
+        load_replay_buffer_state(self.replay.buffer, state["replay"])
         load_env_state(self.env, state["envs"]["train"])
-        load_env_state(self.eval_env, state["envs"]["eval"])
-        set_rng_state(state["rng"])
-        if "collector" in state:  # absent before the key: the resumed run's ("collector", "traj_ids") restart at 0
-            # the counter alone: TorchRL's Collector.load_state_dict would also reset the frame count of this
-            # collector (built for the remaining frames) and start trajectories before the reset below starts them
-            self.collector._traj_pool.load_state_dict(state["collector"]["traj_pool"])
-        self.collector.reset()
+        set_rng_state(state["rng"], **self._named_generators())
 
     def checkpoint(self) -> Path:
-        """Save the current state and restart the collector's episodes (what a run resumed from it does)."""
-        state = self.state_dict()
-        path = save_diayn_checkpoint(
-            self.checkpointer, meta=self.meta, actor=self.actor, discriminator=self.discriminator, loss=self.loss,
-            optimizers=self.optimizers, counters=self.counters, random_metrics=self.random_metrics,
-            replay=state["replay"], rng=state["rng"], envs=state["envs"], collector=state["collector"], config=self.cfg)
-        self.collector.reset()
+        """Save the program's state and each seed's skills, then restart the episodes (what a resumed run does)."""
+        frames = self.counters["frames"]
+        path = DIAYN_SEEDS_FORMAT.save(self.checkpointer, frames, self.meta, self.cfg, **self.state_dict())
+        for i, seed in enumerate(self.seeds):
+            self.loss.copy_to(i, self.seed_losses[i])
+            seed_cfg = OmegaConf.merge(self.cfg, {"seed": seed, "seeds": [seed],
+                                                  "output_dir": str(seed_run_dir(self.output_dir, seed))})
+            save_diayn_checkpoint(self.seed_checkpointers[i], meta=self.seed_meta,
+                                  actor=self.seed_losses[i].sac_loss.actor_network,
+                                  discriminator=self.seed_losses[i].discriminator, counters=self.counters,
+                                  config=seed_cfg)
+        self._carry = self.env.reset()
+        self.episode_return.zero_()
         return path
 
-    def evaluate(self, figure_path: Path) -> dict[str, float]:
-        """Fresh rollouts of every skill (:func:`evaluate`) at the current frame count."""
-        return evaluate(self.cfg, self.eval_env, self.actor, self.discriminator, self.num_skills,
-                        self.counters["frames"], figure_path, self.logger, self.baseline)
+    def evaluate(self, name: str) -> dict[str, float]:
+        """Fresh rollouts of every seed's skills (:func:`evaluate`), figures at
+        ``<output_dir>/seed<s>/figures/<name>``."""
+        metrics = {}
+        for i, seed in enumerate(self.seeds):
+            self.loss.copy_to(i, self.seed_losses[i])
+            loss = self.seed_losses[i]
+            metrics.update(evaluate(self.cfg, self.eval_env, loss.sac_loss.actor_network, loss.discriminator,
+                                    self.num_skills, self.counters["frames"],
+                                    seed_run_dir(self.output_dir, seed) / "figures" / name, self.logger,
+                                    self.baseline, seed, self.prefix(i)))
+        return metrics
+
+    @torch.no_grad()
+    def _act(self, carry) -> torch.Tensor:
+        """Actions ``[S * n, act]`` for the env's current state: uniform during the warm-up, else each seed's policy
+        with noise from its generator (:func:`seedwise_tanh_normal`)."""
+        S, n = len(self.seeds), self.cfg.env.num_envs
+        if self.counters["frames"] < self.cfg.collector.init_random_frames:
+            return self.replay.draw((n, self.act_dim), "uniform").view(S * n, -1)
+        params = self.loss.actor(torch.cat([carry["observation"], carry["skill"]], -1).view(S, n, -1))
+        noise = self.replay.draw((n, self.act_dim), "normal")
+        return seedwise_tanh_normal(params, noise, self.loss.scale_map).reshape(S * n, -1)
+
+    def _collect(self, steps: int):
+        """``steps`` env steps of every copy: transitions ``[steps * n, S]`` and the finished episodes' returns."""
+        S, n = len(self.seeds), self.cfg.env.num_envs
+        carry, transitions, finished = self._carry, [], []
+        with torch_threads_beside_physics(self.env):
+            for _ in range(steps):
+                carry.set("action", self._act(carry))
+                out, carry = self.env.step_and_maybe_reset(carry)
+                step = out.select(*TRANSITION_KEYS)
+                transitions.append(step)
+                with torch.no_grad():
+                    logits = self.loss.discriminator_logits(step["observation"].view(S, n, -1))
+                    self.episode_return += skill_reward(logits, step["skill"].view(S, n, -1)).view(-1)
+                done = out["next", "done"].view(-1)
+                if done.any():
+                    finished.append(torch.where(done, self.episode_return, torch.nan))
+                    self.episode_return.masked_fill_(done, 0.0)
+        self._carry = carry
+        data = transitions[0].unsqueeze(0) if steps == 1 else torch.stack(transitions)  # [steps, S * n]
+        data = data.view(steps, S, n).transpose(1, 2).reshape(steps * n, S)
+        returns = torch.stack(finished).view(-1, S, n).transpose(0, 1).reshape(S, -1) if finished else None
+        return data, returns
 
     def step(self) -> dict[str, float]:
-        """One collector batch: replay, updates, an evaluation when due; its metrics."""
+        """One batch: ``collector.frames_per_batch`` env steps per seed into the replay, the updates they earn, an
+        evaluation when due. Returns the metrics due at this frame count: the training metrics averaged since the
+        last ones (every ``log_every`` frames), an evaluation's; an empty dict between them."""
         cfg, counters = self.cfg, self.counters
         collect_start = time.perf_counter()
-        data = next(self._batches).reshape(-1)
-        collect_time = time.perf_counter() - collect_start
-        self.buffer.extend(data)
-        counters["frames"] += data.numel()
+        data, returns = self._collect(cfg.collector.frames_per_batch // cfg.env.num_envs)
+        self._interval["collect_s"] += time.perf_counter() - collect_start
+        self.replay.extend(data)
+        counters["frames"] += data.shape[0]
+        self._interval["frames"] += data.shape[0]
+        if returns is not None:
+            self._interval["returns"].append(returns)
 
-        update_start, logs = time.perf_counter(), []
-        if len(self.buffer) >= self.warmup:
-            counters["update_credit"] += data.numel() * cfg.optim.updates_per_frame
+        if len(self.replay) >= self.warmup:
+            update_start = time.perf_counter()
+            counters["update_credit"] += data.shape[0] * cfg.optim.updates_per_frame
             for _ in range(int(counters["update_credit"])):
-                logs.append(self.update(self.buffer.sample()))
+                out = self.update(self.replay.sample())
+                self._interval["sums"] = out if self._interval["sums"] is None else self._interval["sums"] + out
+                self._interval["updates"] += 1
+            counters["updates"] += int(counters["update_credit"])
             counters["update_credit"] -= int(counters["update_credit"])
-        if logs:  # once per batch of updates: a per-update check would wait on the GPU after every update
-            stacked = torch.stack(logs)
-            check_finite({k: v for k, v in stacked.items() if k.startswith("loss_")},
-                         f"DIAYN updates {counters['updates']}..{counters['updates'] + len(logs) - 1}")
-            counters["updates"] += len(logs)
-        update_time = time.perf_counter() - update_start
+            self._interval["update_s"] += time.perf_counter() - update_start
+        metrics = {}
+        if counters["frames"] >= counters["next_log"] or self.done:
+            metrics = self._interval_metrics()
+            counters["next_log"] = (counters["frames"] // cfg.log_every + 1) * cfg.log_every
+        if counters["frames"] >= counters["next_eval"]:
+            metrics.update(self.evaluate(f"skill_coverage_{counters['frames']}.png"))
+            counters["next_eval"] += cfg.eval.every
+        return metrics
 
-        metrics = {"time/env_steps_per_s": data.numel() / max(collect_time, 1e-9),
+    def _new_interval(self) -> dict:
+        return {"frames": 0, "updates": 0, "collect_s": 0.0, "update_s": 0.0, "sums": None, "returns": []}
+
+    def _interval_metrics(self) -> dict[str, float]:
+        """The training metrics since the last call (means over its updates and finished episodes; the losses are
+        checked finite here, once per interval: a per-update check would wait on a GPU after every update)."""
+        interval, counters, seeds = self._interval, self.counters, self.seeds
+        self._interval = self._new_interval()
+        metrics = {"time/env_steps_per_s": interval["frames"] * len(seeds) / max(interval["collect_s"], 1e-9),
                    "time/elapsed_s": time.perf_counter() - self.start_time, "train/frames": counters["frames"],
                    "train/updates": counters["updates"]}
-        if logs:
-            mean = stacked.float().mean()
-            metrics.update({f"train/{k}": float(v) for k, v in mean.items()})
-            metrics["time/updates_per_s"] = len(logs) / max(update_time, 1e-9)
-        finished = data["next", "done"].squeeze(-1)
-        if finished.any():
-            metrics["train/episode_return"] = float(data["next", "episode_reward"][finished].mean())
-        if counters["frames"] >= counters["next_eval"]:
-            metrics.update(self.evaluate(self.output_dir / "figures" / f"skill_coverage_{counters['frames']}.png"))
-            counters["next_eval"] += cfg.eval.every
+        if interval["updates"]:
+            mean = interval["sums"] / interval["updates"]  # [S]
+            first = counters["updates"] - interval["updates"]
+            check_finite({k: v for k, v in mean.items() if k.startswith("loss_")},
+                         f"DIAYN updates {first}..{counters['updates'] - 1}")
+            metrics["time/seed_updates_per_s"] = interval["updates"] * len(seeds) / max(interval["update_s"], 1e-9)
+            for i in range(len(seeds)):
+                metrics.update({f"{self.prefix(i)}train/{k}": float(v[i]) for k, v in mean.items()})
+        if interval["returns"]:
+            returns = torch.cat(interval["returns"], dim=1)  # [S, episodes]
+            for i in range(len(seeds)):
+                ended = returns[i][~returns[i].isnan()]
+                if ended.numel():
+                    metrics[f"{self.prefix(i)}train/episode_return"] = float(ended.mean())
         return metrics
 
     def log(self, metrics: dict[str, float]) -> None:
@@ -280,33 +414,33 @@ class DIAYNTrainer:
         log_metrics(self.logger, metrics, self.counters["frames"])
 
     def train(self) -> dict:
-        """Step to ``collector.total_frames`` (logging, checkpointing every ``checkpoint.every`` frames and at the
-        end), then evaluate the final skills; returns the last metrics, the final evaluation, the random policy's
-        and the ``checkpoint`` path."""
+        """Step to ``collector.total_frames`` (logging every ``log_every`` frames, checkpointing every
+        ``checkpoint.every`` frames and at the end), then evaluate the final skills; returns the last training
+        metrics, the final evaluation, the random policy's, the program ``checkpoint`` path and each seed's run
+        folder (``runs``)."""
         cfg, counters = self.cfg, self.counters
         progress = tqdm.tqdm(total=cfg.collector.total_frames, initial=counters["frames"], disable=not cfg.progress,
-                             unit="frames", desc=f"DIAYN {cfg.env.name}")
-        metrics, path = {}, None
+                             unit="frames", desc=f"DIAYN {cfg.env.name} seeds {list(self.seeds)}")
+        last, path = {}, None
         while not self.done:
             before = counters["frames"]
             metrics = self.step()
             progress.update(counters["frames"] - before)
-            self.log(metrics)
-            progress.set_postfix({k.split("/")[-1]: f"{v:.3g}" for k, v in metrics.items()
-                                  if k in ("train/discriminator_accuracy", "train/pseudo_reward",
-                                           "eval/final_state_accuracy")})
+            if metrics:
+                self.log(metrics)
+                last.update(metrics)
             due = counters["frames"] >= counters["next_checkpoint"]
             if due or self.done:  # every checkpoint.every frames, and the end
                 counters["next_checkpoint"] += cfg.checkpoint.every * due
                 path = self.checkpoint()
         progress.close()
-        final = self.evaluate(self.output_dir / "figures" / "skill_coverage.png")
+        final = self.evaluate("skill_coverage.png")
         self.log(final)
-        return {**metrics, **final, **self.random_metrics, "checkpoint": str(path)}
+        return {**last, **final, **self.random_metrics, "checkpoint": str(path),
+                "runs": [str(seed_run_dir(self.output_dir, s)) for s in self.seeds]}
 
     def close(self) -> None:
-        """Shut the collector down and close both envs."""
-        self.collector.shutdown()
+        """Close both envs and the logger."""
         self.env.close()
         self.eval_env.close()
         close_logger(self.logger)
@@ -314,7 +448,7 @@ class DIAYNTrainer:
 
 def train(cfg: DictConfig) -> dict:
     """Run DIAYN as configured in this process (:class:`DIAYNTrainer`, then closed): the last logged metrics (also
-    the final evaluation's) and the checkpoint path."""
+    the final evaluation's), the program checkpoint path and the seeds' run folders."""
     trainer = DIAYNTrainer(cfg)
     try:
         return trainer.train()

@@ -11,6 +11,8 @@ each copy on, ``pin(None)`` restores uniform sampling.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 from tensordict import TensorDictBase
 from torchrl.data import OneHot
@@ -27,6 +29,10 @@ class SkillTransform(TensorDictPrimer):
 
     Keyword Args:
         skill_key (NestedKey): where the one-hot skill [*B, K] float32 is written. Defaults to ``"skill"``.
+        generators (sequence of torch.Generator, optional): one per equal group of consecutive env copies (a
+            multi-seed run: one per seed); a reset copy draws its skill from its group's generator, and only reset
+            copies draw, so a group's skills never depend on the other groups. Defaults to ``None``: torch's global
+            generator, for every copy at each reset (TorchRL's ``TensorDictPrimer``).
 
     Examples:
         >>> from umrl.envs import make_env
@@ -39,7 +45,7 @@ class SkillTransform(TensorDictPrimer):
         tensor([0, 1, 2, 3])
     """
 
-    def __init__(self, num_skills: int, *, skill_key="skill"):
+    def __init__(self, num_skills: int, *, skill_key="skill", generators: Sequence[torch.Generator] | None = None):
         if not isinstance(num_skills, int) or num_skills < 2:
             raise ValueError(f"num_skills must be an int >= 2, got {num_skills!r}.")
         super().__init__(
@@ -48,6 +54,7 @@ class SkillTransform(TensorDictPrimer):
         self.num_skills = num_skills
         self.skill_key = skill_key
         self._pinned: torch.Tensor | None = None
+        self._generators = None if generators is None else list(generators)
 
     def pin(self, skills: torch.Tensor | None) -> None:
         """Fixes the skill index of each env copy (LongTensor [*B], values in [0, K)); ``None`` samples again.
@@ -85,10 +92,31 @@ class SkillTransform(TensorDictPrimer):
         return tensordict
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        if self._generators is not None:
+            return self._apply_pin(self._draw_per_group(tensordict, tensordict_reset))
         # The parent samples a skill for every copy; env.reset keeps the new value only where "_reset" is set.
         tensordict_reset = super()._reset(tensordict, tensordict_reset)
         if self.skill_key in tensordict_reset.keys(True):
             tensordict_reset = self._apply_pin(tensordict_reset)
+        return tensordict_reset
+
+    def _draw_per_group(self, tensordict: TensorDictBase | None, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        """A skill for every copy, drawn from its group's generator where the copy resets (env.reset keeps only
+        those)."""
+        batch = tensordict_reset.batch_size
+        mask = None if tensordict is None else tensordict.get("_reset", None)
+        mask = torch.ones(batch.numel(), dtype=torch.bool) if mask is None else mask.reshape(-1).cpu()
+        groups = len(self._generators)
+        if mask.numel() % groups:
+            raise ValueError(f"{groups} skill generators cannot split {mask.numel()} env copies into equal groups.")
+        index = torch.zeros(mask.numel(), dtype=torch.long)
+        for group, (rows, generator) in enumerate(zip(mask.view(groups, -1), self._generators)):
+            reset = rows.nonzero().squeeze(-1)
+            if reset.numel():
+                index[reset + group * rows.numel()] = torch.randint(self.num_skills, (reset.numel(),),
+                                                                    generator=generator)
+        skill = torch.nn.functional.one_hot(index.view(batch), self.num_skills).float()
+        tensordict_reset.set(self.skill_key, skill.to(tensordict_reset.device))
         return tensordict_reset
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
