@@ -3,14 +3,16 @@
 :mod:`~umrl.theory.cmp` (CMPs and reachable sets), :mod:`~umrl.theory.marginals` (terminal marginals by dynamic
 programming), :mod:`~umrl.theory.regret` (regret of f_pi, its worst case, Eq. 4 and a convex solver),
 :mod:`~umrl.theory.learning` (f_pi simulated, to check the hitting time), :mod:`~umrl.theory.mutual_information`
-(the MI proposal), :mod:`~umrl.theory.proposals` (other proposals and the marginals they induce),
-:mod:`~umrl.theory.trajectories` (trajectory matching) and :mod:`~umrl.theory.evaluation` (the comparison table).
+(the MI proposal), :mod:`~umrl.theory.proposals` (other proposals, their task marginals and the Eq. 4 learner
+meta-trained on them), :mod:`~umrl.theory.trajectories` (trajectory matching), :mod:`~umrl.theory.noise` (slip
+noise: the same CMPs with stochastic dynamics) and :mod:`~umrl.theory.evaluation` (the comparison table).
 """
 from umrl.theory.cmp import DeterministicCMP, chain, grid, random_cmp, reachable_at, tree
 from umrl.theory.evaluation import (
     Evaluation,
     compare_proposals,
     evaluate_marginal,
+    evaluate_proposal,
     goal_distributions,
     proposal_tasks,
     regret_against_latents,
@@ -29,9 +31,11 @@ from umrl.theory.mutual_information import (
     maximise_mutual_information,
     mutual_information,
 )
+from umrl.theory.noise import slip_policy, worst_case_under_slips
 from umrl.theory.proposals import (
     far_goals,
     goal_rewards,
+    meta_learned_marginal,
     optimal_policy_marginal,
     random_discriminator_rewards,
 )
@@ -58,6 +62,7 @@ __all__ = [
     "compare_proposals",
     "enumerate_trajectories",
     "evaluate_marginal",
+    "evaluate_proposal",
     "far_goals",
     "goal_distributions",
     "goal_rewards",
@@ -65,6 +70,7 @@ __all__ = [
     "max_mutual_information",
     "maximise_mutual_information",
     "maximise_trajectory_information",
+    "meta_learned_marginal",
     "minimise_regret",
     "mutual_information",
     "optimal_marginal",
@@ -79,6 +85,7 @@ __all__ = [
     "regret_within",
     "simulate_learning",
     "simulate_regret",
+    "slip_policy",
     "state_marginals",
     "terminal_marginal",
     "terminal_marginal_by_enumeration",
@@ -88,4 +95,5 @@ __all__ = [
     "uniform_trajectory_policy",
     "worst_case_goal",
     "worst_case_regret",
+    "worst_case_under_slips",
 ]

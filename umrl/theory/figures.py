@@ -37,15 +37,16 @@ def plot_grid_marginals(cmp: DeterministicCMP, rows: list[Evaluation], path: str
     for ax in axes.flat[len(rows):]:
         ax.axis("off")
     fig.colorbar(image, ax=axes, shrink=0.6, label="terminal marginal rho(s_T)")
-    fig.suptitle(f"{cmp.name}, T={cmp.horizon}: where each proposal's learner explores (red star: start; "
-                 "hatched: unreachable at T)", fontsize=9)
+    fig.suptitle(f"{cmp.name}, T={cmp.horizon}: where the learner meta-trained on each proposal explores (Eq. 4; "
+                 "red star: start; hatched: unreachable at T)", fontsize=9)
     return _save(fig, path)
 
 
 def plot_regret_against_latents(cmp: DeterministicCMP, latents: list[int], curves: dict[str, list[float]],
                                 path: str | Path) -> Path:
-    """The ``"... worst-case"`` curves of :func:`~umrl.theory.evaluation.regret_against_latents` against ``|Z|``
-    (infinite values drawn as crosses at the top), and the MI the ascent reached against its maximum."""
+    """The ``"... worst-case"`` curves of :func:`~umrl.theory.evaluation.regret_against_latents` (learners meta-trained
+    on each proposal) against ``|Z|`` (infinite values drawn as crosses at the top), and the MI the ascent reached
+    against its maximum."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -67,7 +68,7 @@ def plot_regret_against_latents(cmp: DeterministicCMP, latents: list[int], curve
     left.set_yscale("log")
     left.yaxis.set_major_formatter(ScalarFormatter())
     left.set_xlabel("|Z| (latents)")
-    left.set_ylabel("worst-case regret (episodes); x on top = infinite")
+    left.set_ylabel("worst-case regret of the Eq. 4 learner\n(episodes); x on top = infinite")
     left.legend(fontsize=7)
     right.plot(latents, curves["MI reached"], "o-", label="I(s_T; z) reached by ascent")
     right.plot(latents, curves["MI maximum"], "k.", label="max over conditionals (even split)")

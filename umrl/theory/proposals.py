@@ -1,8 +1,12 @@
 """Task proposals on a deterministic CMP as reward tables over terminal states, and the exploration they induce.
 
-A proposal is a set of tasks ``r_z(s_T)`` (a table ``[Z, S]``) with a prior over ``z``. Meta-learning on it gives, in
-the analysis' limit, a learner f_pi that explores by sampling a task and acting as that task's optimal policy, so its
-terminal marginal is the proposal's :func:`optimal_policy_marginal`. Proposals compared:
+A proposal is a set of tasks ``r_z(s_T)`` (a table ``[Z, S]``) with a prior over ``z``. Its task marginal ``q``
+(:func:`optimal_policy_marginal`) is where its tasks' optimal policies end: the goal distribution a learner
+meta-trained on the proposal is trained for. Meta-learning over the learners f_pi minimises the regret
+``sum_g q(g) / rho(g)`` on those goals, so in the analysis' limit the learner explores with the Eq. 4 marginal
+``sqrt(q) / sum sqrt(q)`` (:func:`meta_learned_marginal`). Exploring with ``q`` itself (posterior sampling: draw a
+task, act as its optimal policy) is the same learner only when ``q`` is uniform on its support, and otherwise has
+more regret on the proposal's own goals (``|supp q|`` against ``(sum sqrt q)^2``). Proposals compared:
 
 * the MI-optimal one, ``r_z = log mu(s_T | z)`` (:class:`~umrl.theory.mutual_information.MIProposal`);
 * a frozen random discriminator, ``r_z(s) = log softmax(W[s])_z`` for random logits ``W`` ``[S, Z]``
@@ -11,8 +15,11 @@ terminal marginal is the proposal's :func:`optimal_policy_marginal`. Proposals c
 
 >>> from umrl.theory.cmp import chain
 >>> cmp = chain(5, horizon=2)
->>> optimal_policy_marginal(cmp, goal_rewards([2, 2, 1], cmp.num_states)).tolist()
+>>> rewards = goal_rewards([2, 2, 1], cmp.num_states)
+>>> optimal_policy_marginal(cmp, rewards).tolist()
 [0.0, 0.3333333333333333, 0.6666666666666666, 0.0, 0.0]
+>>> [round(x, 4) for x in meta_learned_marginal(cmp, rewards).tolist()]  # sqrt(1/3) : sqrt(2/3)
+[0.0, 0.4142, 0.5858, 0.0, 0.0]
 """
 from __future__ import annotations
 
@@ -20,12 +27,15 @@ import torch
 
 from umrl.theory.cmp import DeterministicCMP, reachable_at
 from umrl.theory.marginals import terminal_marginal, uniform_policy
+from umrl.theory.regret import optimal_marginal
 from umrl.validation import InvalidValue, check_float, check_int
 
 
 def optimal_policy_marginal(cmp: DeterministicCMP, rewards: torch.Tensor, prior: torch.Tensor | None = None, *,
                             temperature: float = 0.0) -> torch.Tensor:
-    """Terminal marginal ``[S]`` of the tasks' optimal policies, mixed over ``prior`` ``[Z]`` (default uniform).
+    """The task marginal ``q`` ``[S]``: the tasks' optimal policies' terminal marginals, mixed over ``prior`` ``[Z]``
+    (default uniform). It is the posterior-sampling learner's exploration marginal, not the meta-learned one's
+    (:func:`meta_learned_marginal`).
 
     ``rewards`` ``[Z, S]`` are terminal rewards (``-inf`` allowed). With ``temperature`` 0 each task's optimal
     policies go to a best reachable state (ties split evenly). With ``temperature`` alpha > 0 they are the
@@ -48,6 +58,17 @@ def optimal_policy_marginal(cmp: DeterministicCMP, rewards: torch.Tensor, prior:
         log_paths = terminal_marginal(cmp, uniform_policy(cmp)).log()  # log n(s) up to a constant
         conditionals = (masked / temperature + log_paths).softmax(1)
     return prior @ conditionals
+
+
+def meta_learned_marginal(cmp: DeterministicCMP, rewards: torch.Tensor, prior: torch.Tensor | None = None, *,
+                          temperature: float = 0.0) -> torch.Tensor:
+    """Exploration marginal ``[S]`` of the learner meta-trained on the proposal: Eq. 4 for its task marginal ``q``.
+
+    ``sqrt(q) / sum sqrt(q)`` with ``q = optimal_policy_marginal(cmp, rewards, prior, temperature=temperature)``
+    (arguments as there): the f_pi with least regret on goals drawn from ``q``. It is achievable, ``q`` being
+    supported on the states reachable at T (:func:`~umrl.theory.marginals.policy_for_marginal`).
+    """
+    return optimal_marginal(optimal_policy_marginal(cmp, rewards, prior, temperature=temperature))
 
 
 def random_discriminator_rewards(num_states: int, num_latents: int, *, seed: int, scale: float = 1.0) -> torch.Tensor:
