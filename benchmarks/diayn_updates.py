@@ -1,61 +1,46 @@
-"""DIAYN SAC + discriminator updates per second (2x300 networks, batch 256) against their arithmetic floor.
+"""DIAYN's training loop for S seeds in one program: aggregate seed-updates/s against the arithmetic floor.
 
-    python benchmarks/diayn_updates.py                                  # cpu, eager, point_nav and half_cheetah
-    python benchmarks/diayn_updates.py --device auto --compile --cudagraphs --repeats 7
-    python benchmarks/diayn_updates.py --device cpu --threads 2 --envs point_nav
+    python benchmarks/diayn_updates.py                                   # half_cheetah, S = 1 3 6, cpu, eager
+    python benchmarks/diayn_updates.py --threads 2 --seeds 1 3 6 --repeats 7
+    python benchmarks/diayn_updates.py --device cuda --seeds 1 4 8 --compile --cudagraphs
 
-One update is :class:`umrl.objectives.diayn.DIAYNUpdate` (relabel with the current D, SACLoss + D's cross-entropy,
-backward, Adam steps, soft target update) on a batch drawn from a device-resident replay buffer of random
-transitions, as in the recipe: ``point_nav`` (obs 2, act 2, 50 skills) and ``half_cheetah`` (obs 17, act 6, 20
-skills). Variants: ``eager`` always; ``--compile`` adds ``compile``, ``--cudagraphs`` adds ``cudagraphs``, both add
-``compile+cudagraphs``. Each variant gets its own networks from the same seed; their timed repeats (``--updates``
-updates each, after ``--warmup`` untimed ones) are interleaved, and the medians of ``--repeats`` are printed with
-ratios to ``eager`` from the same run.
+What is timed is :meth:`umrl.trainers.diayn.DIAYNTrainer.step` at the recipe's defaults (2x300 networks, batch 128,
+one env copy per seed): one env step of every seed, then one fused update of all seeds, as in a run, with the env
+stepping, the acting, the replay writes and samples included (``loop``), after the warm-up; and the update alone on
+the same trainer's replay samples (``update``). One seed-update is one seed's SAC + discriminator update, so a
+step of S seeds is S seed-updates. Beside them, ``sacloss`` is one seed's update through TorchRL's ``SACLoss``
+(:class:`umrl.objectives.diayn.DIAYNUpdate`, the one-seed implementation) on the same sizes, update only. Variants
+are built from the same seeds and their timed repeats (``--steps`` steps each) interleaved; medians of
+``--repeats`` are printed, with ratios to S = 1 eager from the same run.
 
-The **arithmetic floor** is one update's FLOPs (``torch.utils.flop_counter.FlopCounterMode`` around an eager update:
-matmuls of forward and backward; Adam's elementwise work is not counted) divided by the device's matmul rate measured
-in the same run, twice: a large ``torch.mm`` (the device's peak) and the update's own dominant GEMM
-([batch, 300] @ [300, 300], what these small layers can reach). ``updates/s`` at the floor is 1 / floor.
+The **arithmetic floor** is one seed-update's FLOPs (``torch.utils.flop_counter.FlopCounterMode`` around one update
+of one seed: the matmuls of forward and backward; Adam's element-wise work is not counted) divided by the matmul rate
+of the update's own dominant GEMM ([batch, 300] @ [300, 300], ``torch.mm``), measured in the same run: ``floor
+seed-upd/s`` = rate / FLOPs, and ``of floor`` = seed-updates/s / that. Batched matmuls of several seeds can run above
+that one-matrix rate, so ``of floor`` can exceed 1 at large S.
 """
 from __future__ import annotations
 
 import argparse
 import statistics
+import tempfile
+from pathlib import Path
 
 import torch
-from tensordict import TensorDict
 from torch.utils.flop_counter import FlopCounterMode
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
-from umrl.envs import ENV_NAMES, get_env_spec
-from umrl.modules.discriminator import make_discriminator
-from umrl.modules.sac import make_skill_actor, make_skill_qvalue
-from umrl.objectives.diayn import DIAYNLoss, DIAYNUpdate, make_diayn_optimizers
+from umrl.envs import ENV_NAMES
+from umrl.objectives.diayn import DIAYNUpdate, make_diayn_optimizers
 from umrl.process import tune_process
 from umrl.profiling import device_clock, matmul_rate
+from umrl.trainers import compose
+from umrl.trainers.diayn import DIAYNTrainer
 from umrl.validation import resolve_device
-
-HIDDEN = (300, 300)
-
-
-def random_transitions(env_name: str, obs_dim: int, act_dim: int, size: int) -> TensorDict:
-    """``size`` random transitions (batch ``[size]``, on CPU) with the keys DIAYNLoss reads."""
-    g = torch.Generator().manual_seed(0)
-    num_skills = get_env_spec(env_name).num_skills
-    skill = torch.eye(num_skills)[torch.randint(num_skills, (size,), generator=g)]
-    data = TensorDict({
-        "observation": torch.randn(size, obs_dim, generator=g), "skill": skill,
-        "action": torch.rand(size, act_dim, generator=g) * 2 - 1,
-        "next": {"observation": torch.randn(size, obs_dim, generator=g), "skill": skill,
-                 "reward": torch.zeros(size, 1), "done": torch.zeros(size, 1, dtype=torch.bool),
-                 "terminated": torch.zeros(size, 1, dtype=torch.bool)},
-    }, [size])
-    return data
 
 
 class _GlobalOnly:
     """Stands in for FlopCounterMode's per-module tracker, which compares modules with ``==`` in a weak dict and so
-    fails on the loss's ``TensorDictParams``; every FLOP is counted under "Global" only."""
+    fails on TensorDict parameters; every FLOP is counted under "Global" only."""
 
     parents = ("Global",)
 
@@ -66,86 +51,129 @@ class _GlobalOnly:
         return None
 
 
+def count_flops(fn, *args) -> int:
+    """Matmul FLOPs of ``fn(*args)`` (forward and backward)."""
+    counter = FlopCounterMode(display=False)
+    counter.mod_tracker = _GlobalOnly()
+    with counter:
+        fn(*args)
+    return counter.get_total_flops()
+
+
 class Variant:
-    """One loss + optimisers + DIAYNUpdate (with its compile / cudagraphs options) and its replay buffer."""
+    """A :class:`DIAYNTrainer` of ``num_seeds`` seeds, warmed up past its first updates."""
 
-    def __init__(self, name: str, env_name: str, obs_dim: int, act_dim: int, args, device: torch.device):
-        self.name, self.device, self.batch_size = name, device, args.batch_size
-        torch.manual_seed(args.seed)
-        k = get_env_spec(env_name).num_skills
-        loss = DIAYNLoss(make_skill_actor(obs_dim, k, act_dim, hidden=HIDDEN),
-                         make_skill_qvalue(obs_dim, k, act_dim, hidden=HIDDEN),
-                         make_discriminator(obs_dim, k, hidden=HIDDEN), num_skills=k)
-        self.loss = loss.make_value_estimator(gamma=0.99).to(device)
-        cudagraphs = "cudagraphs" in name
-        optimizers = make_diayn_optimizers(self.loss, lr=3e-4, discriminator_lr=3e-4, capturable=cudagraphs)
-        self.update = DIAYNUpdate(self.loss, optimizers, tau=0.01, compile="compile" in name, cudagraphs=cudagraphs)
-        self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(args.buffer_size, device=device),
-                                             batch_size=args.batch_size)
-        self.buffer.extend(random_transitions(env_name, obs_dim, act_dim, args.buffer_size))
+    def __init__(self, env_name: str, num_seeds: int, args, output_dir: Path, *, compile: bool,
+                 cudagraphs: bool):
+        self.name = "+".join(["eager"] * (not compile and not cudagraphs) + ["compile"] * compile
+                             + ["cudagraphs"] * cudagraphs)
+        self.num_seeds, self.device = num_seeds, torch.device(args.device)
+        overrides = [
+            f"env.name={env_name}", f"seeds=[{','.join(str(args.seed + s) for s in range(num_seeds))}]",
+            f"device={args.device}", f"replay_buffer.batch_size={args.batch_size}",
+            f"replay_buffer.size={args.buffer_size}", f"collector.init_random_frames={args.batch_size}",
+            f"network.hidden=[{args.hidden},{args.hidden}]",
+            f"network.discriminator_hidden=[{args.hidden},{args.hidden}]",
+            "collector.total_frames=1000000000", "eval.every=1000000000", "checkpoint.every=1000000000",
+            "log_every=1000000000", f"optim.compile={compile}", f"optim.cudagraphs={cudagraphs}",
+            "logger.backend=none", "progress=false", f"output_dir={output_dir / f'{self.name}_S{num_seeds}'}",
+        ]
+        self.trainer = DIAYNTrainer(compose("diayn", overrides))
+        self.steps(args.batch_size + args.warmup)  # the random warm-up, then compilation or capture
 
-    def run(self, n: int) -> float:
-        """Seconds for ``n`` sample + update steps (device work included)."""
+    def steps(self, n: int) -> float:
+        """Seconds for ``n`` trainer steps (device work included)."""
         start = device_clock(self.device)
         for _ in range(n):
-            out = self.update(self.buffer.sample())
-        out["loss_qvalue"].item()  # one host sync per timing, as a recipe checking its losses once per batch
+            self.trainer.step()
         return device_clock(self.device) - start
 
-    def flops(self) -> int:
-        """FLOPs of one eager update (forward + backward matmuls)."""
-        counter = FlopCounterMode(display=False)
-        counter.mod_tracker = _GlobalOnly()
-        with counter:
-            self.update._step(self.buffer.sample())
-        return counter.get_total_flops()
+    def updates(self, n: int) -> float:
+        """Seconds for ``n`` updates on fresh replay samples (device work included)."""
+        start = device_clock(self.device)
+        for _ in range(n):
+            self.trainer.update(self.trainer.replay.sample())
+        return device_clock(self.device) - start
+
+
+class SACLossVariant:
+    """One seed's update through TorchRL's ``SACLoss`` (:class:`DIAYNUpdate`) on a replay sample of ``source``."""
+
+    def __init__(self, source: Variant, args):
+        trainer = source.trainer
+        loss = trainer.seed_losses[0]
+        loss.make_value_estimator(gamma=trainer.cfg.optim.gamma)
+        self.update = DIAYNUpdate(loss, make_diayn_optimizers(loss, lr=3e-4, discriminator_lr=3e-4), tau=0.01)
+        self.sample = lambda: trainer.replay.sample()[0].exclude("action_noise", ("next", "action_noise")).set(
+            ("next", "reward"), torch.zeros(args.batch_size, 1, device=source.device)).set(
+            ("next", "done"), torch.zeros(args.batch_size, 1, dtype=torch.bool, device=source.device))
+        self.device = source.device
+
+    def updates(self, n: int) -> float:
+        start = device_clock(self.device)
+        for _ in range(n):
+            self.update(self.sample())
+        return device_clock(self.device) - start
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
-    parser.add_argument("--envs", nargs="+", default=["point_nav", "half_cheetah"], choices=sorted(ENV_NAMES))
+    parser.add_argument("--envs", nargs="+", default=["half_cheetah"], choices=sorted(ENV_NAMES))
+    parser.add_argument("--seeds", nargs="+", type=int, default=[1, 3, 6], help="numbers of seeds S to measure")
     parser.add_argument("--compile", action="store_true", help="also measure torch.compile'd updates")
     parser.add_argument("--cudagraphs", action="store_true", help="also measure CUDA-graph-captured updates")
-    parser.add_argument("--batch-size", type=int, default=256)
+    parser.add_argument("--batch-size", type=int, default=128)
+    parser.add_argument("--hidden", type=int, default=300, help="width of the 2-layer networks")
     parser.add_argument("--buffer-size", type=int, default=100_000)
-    parser.add_argument("--updates", type=int, default=50, help="updates per timed repeat")
-    parser.add_argument("--warmup", type=int, default=10, help="untimed updates per variant (compile, capture)")
+    parser.add_argument("--steps", type=int, default=100, help="trainer steps (and updates) per timed repeat")
+    parser.add_argument("--warmup", type=int, default=20, help="untimed steps after the random warm-up")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
-    device = torch.device(resolve_device("--device", args.device))
+    args.device = resolve_device("--device", args.device)
+    device = torch.device(args.device)
     if args.cudagraphs and device.type != "cuda":
         raise SystemExit(f"--cudagraphs needs --device cuda (or auto on a GPU machine); got device {device}.")
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    tune_process()  # as the recipes run
-    names = ["eager"] + (["compile"] if args.compile else []) + (["cudagraphs"] if args.cudagraphs else [])
-    names += ["compile+cudagraphs"] if args.compile and args.cudagraphs else []
-    peak = matmul_rate(device, 4096, 4096, 4096) if device.type == "cuda" else matmul_rate(device, 1024, 1024, 1024)
-    small = matmul_rate(device, args.batch_size, HIDDEN[0], HIDDEN[1])
+    if args.compile and device.type != "cuda":
+        raise SystemExit("--compile runs on a GPU only (the recipe refuses optim.compile on a CPU).")
+    tune_process(num_threads=args.threads)  # as the recipes run
+    modes = [(False, False)] + [(True, False)] * args.compile + [(False, True)] * args.cudagraphs
+    modes += [(True, True)] * (args.compile and args.cudagraphs)
+    rate = matmul_rate(device, args.batch_size, args.hidden, args.hidden)
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else f"cpu, {torch.get_num_threads()} threads"
-    print(f"device {name}; batch {args.batch_size}, networks 2x{HIDDEN[0]}; matmul rate: peak {peak / 1e9:.1f} "
-          f"GFLOP/s, [{args.batch_size},{HIDDEN[0]}]@[{HIDDEN[0]},{HIDDEN[1]}] {small / 1e9:.1f} GFLOP/s")
-    print(f"{'env':<13} {'variant':<19} {'updates/s':>10} {'vs eager':>9} {'GFLOP/upd':>10} "
-          f"{'floor@peak upd/s':>17} {'floor@gemm upd/s':>17}")
-    for env_name in args.envs:
-        env_spec = get_env_spec(env_name)
-        obs_dim, act_dim = env_spec.obs_dim, env_spec.act_dim
-        variants = [Variant(n, env_name, obs_dim, act_dim, args, device) for n in names]
-        flops = variants[0].flops()
-        for variant in variants:
-            variant.run(args.warmup)
-        times = {v.name: [] for v in variants}
-        for _ in range(args.repeats):
+    print(f"device {name}; batch {args.batch_size}, networks 2x{args.hidden}; "
+          f"[{args.batch_size},{args.hidden}]@[{args.hidden},{args.hidden}] matmul {rate / 1e9:.1f} GFLOP/s")
+    print(f"{'env':<13} {'variant':<19} {'S':>3} {'loop s-upd/s':>13} {'update s-upd/s':>15} {'of floor':>9} "
+          f"{'vs S=1':>7} {'floor s-upd/s':>14}")
+    with tempfile.TemporaryDirectory() as tmp:
+        for env_name in args.envs:
+            variants = [Variant(env_name, s, args, Path(tmp), compile=c, cudagraphs=g) for c, g in modes
+                        for s in args.seeds]
+            one_seed = next((v for v in variants if v.num_seeds == 1 and v.name == "eager"), None)
+            probe = one_seed or Variant(env_name, 1, args, Path(tmp), compile=False, cudagraphs=False)
+            flops = count_flops(probe.trainer.update, probe.trainer.replay.sample())
+            floor = rate / flops
+            sacloss = SACLossVariant(probe, args)
+            loops = {id(v): [] for v in variants}
+            updates = {id(v): [] for v in variants}
+            sac_times = []
+            for _ in range(args.repeats):
+                for variant in variants:
+                    loops[id(variant)].append(variant.steps(args.steps))
+                    updates[id(variant)].append(variant.updates(args.steps))
+                sac_times.append(sacloss.updates(args.steps))
+            base = None
             for variant in variants:
-                times[variant.name].append(variant.run(args.updates))
-        eager_rate = args.updates / statistics.median(times["eager"])
-        for variant in variants:
-            rate = args.updates / statistics.median(times[variant.name])
-            print(f"{env_name:<13} {variant.name:<19} {rate:>10.1f} {rate / eager_rate:>8.2f}x {flops / 1e9:>10.3f} "
-                  f"{peak / flops:>17.0f} {small / flops:>17.0f}")
+                loop = args.steps * variant.num_seeds / statistics.median(loops[id(variant)])
+                update = args.steps * variant.num_seeds / statistics.median(updates[id(variant)])
+                base = loop if base is None and variant.num_seeds == min(args.seeds) else base
+                print(f"{env_name:<13} {variant.name:<19} {variant.num_seeds:>3} {loop:>13.1f} {update:>15.1f} "
+                      f"{loop / floor:>9.2f} {loop / base:>6.2f}x {floor:>14.0f}")
+            sac = args.steps / statistics.median(sac_times)
+            print(f"{env_name:<13} {'sacloss (1 seed)':<19} {1:>3} {'':>13} {sac:>15.1f} {sac / floor:>9.2f} "
+                  f"{'':>7} {floor:>14.0f}")
 
 
 if __name__ == "__main__":

@@ -100,7 +100,15 @@ def test_the_memory_message_gives_the_estimate_and_the_most_that_fits(monkeypatc
     line = one_error("diayn", ["num_skills=5", "collector.frames_per_batch=1600", "replay_buffer.size=200000000"],
                      "replay_buffer.size")
     assert line == ("replay_buffer.size: got 200000000 (≈ 11.92 GiB of replay buffer); expected at most 134216128 with "
-                    "env.name=point_nav and 5 skills on this machine (8 GiB available)")
+                    "env.name=point_nav, 5 skills and 1 seed(s) on this machine (8 GiB available)")
+
+
+def test_the_memory_preflight_counts_every_seeds_replay(monkeypatch):
+    """Three seeds hold three replays: a size that fits one seed's is refused for three, with the most that fits."""
+    monkeypatch.setattr(umrl.configs.memory, "available_memory", lambda device: 8 * GIB)
+    line = one_error("diayn", ["num_skills=5", "seeds=[0,1,2]", "replay_buffer.size=100000000"], "replay_buffer.size")
+    assert line.startswith("replay_buffer.size: got 100000000 (≈ 17.88 GiB of replay buffer); expected at most "
+                           "44738709 with env.name=point_nav, 5 skills and 3 seed(s)")
 
 
 def test_allocations_that_fit_alone_but_not_together_name_the_others(monkeypatch):

@@ -158,7 +158,7 @@ class StackedDIAYNLoss(LossModule):
             depth = len(pairs_per_seed[0])
             weights = [torch.stack([p[i][0].detach() for p in pairs_per_seed]) for i in range(depth)]
             biases = [torch.stack([p[i][1].detach() for p in pairs_per_seed]) for i in range(depth)]
-            return StackedMLP([w.flatten(0, -3).clone() for w in weights], [b.flatten(0, -2).clone() for b in biases])
+            return StackedMLP([w.flatten(0, -3) for w in weights], [b.flatten(0, -2) for b in biases])
 
         sac = [loss.sac_loss for loss in losses]
         return cls(
@@ -179,7 +179,8 @@ class StackedDIAYNLoss(LossModule):
                                        (self.qvalue, sac.qvalue_network_params, 2),
                                        (self.target_qvalue, sac.target_qvalue_network_params, 2)):
             rows = slice(seed_index * twins, (seed_index + 1) * twins)
-            for (weight, bias), w, b in zip(_weight_bias_pairs(params), stacked.weights, stacked.biases, strict=True):
+            for depth, (weight, bias) in enumerate(_weight_bias_pairs(params)):
+                w, b = stacked.stacked(depth)
                 weight.data.copy_(w[rows].reshape(weight.shape))
                 bias.data.copy_(b[rows].reshape(bias.shape))
         self.discriminator.copy_to(seed_index, linear_layers(loss.discriminator))
@@ -275,21 +276,21 @@ class StackedDIAYNUpdate:
         compile (bool or str), cudagraphs (bool): as :class:`~umrl.objectives.diayn.DIAYNUpdate` (CUDA only for
             graphs, whose batches must keep one shape; the optimisers are then built ``capturable``).
 
-    ``update(batch)`` returns the loss's output, detached (batch ``[S]``). :attr:`optimizers` holds the Adam
-    optimisers (``"actor"``, ``"qvalue"``, ``"discriminator"``[, ``"alpha"``]) for checkpoints.
+    ``update(batch)`` returns the loss's output, detached (batch ``[S]``). :attr:`optimizers` holds the one Adam
+    optimiser (``{"adam": ...}``, for checkpoints), whose parameter groups are the actor, the Q-networks, the
+    discriminator (at ``discriminator_lr``) and a learned alpha: one ``step`` call a update, each group the Adam of
+    TorchRL's recipe for it.
     """
 
     def __init__(self, loss: StackedDIAYNLoss, *, lr: float, discriminator_lr: float, tau: float,
                  compile: bool | str = False, cudagraphs: bool = False):
         self.loss, self.tau = loss, tau
-        adam = {"capturable": cudagraphs}
-        self.optimizers = {
-            "actor": torch.optim.Adam(loss.actor.parameters(), lr=lr, **adam),
-            "qvalue": torch.optim.Adam(loss.qvalue.parameters(), lr=lr, **adam),
-            "discriminator": torch.optim.Adam(loss.discriminator.parameters(), lr=discriminator_lr, **adam),
-        }
+        adam = {"capturable": cudagraphs, "fused": True}
+        groups = [{"params": list(loss.actor.parameters())}, {"params": list(loss.qvalue.parameters())},
+                  {"params": list(loss.discriminator.parameters()), "lr": discriminator_lr}]
         if not loss.fixed_alpha:
-            self.optimizers["alpha"] = torch.optim.Adam([loss.log_alpha], lr=lr, **adam)
+            groups.append({"params": [loss.log_alpha]})
+        self.optimizers = {"adam": torch.optim.Adam(groups, lr=lr, **adam)}
         self._targets = list(loss.target_qvalue.parameters())
         self._online = list(loss.qvalue.parameters())
         device = loss.log_alpha.device

@@ -19,7 +19,7 @@ collect-then-update schedule. The first ``collector.init_random_frames`` frames 
 
 Logged (namespaced; with several seeds each seed's under ``seed<s>/``): ``train/`` losses, ``discriminator_accuracy``
 (on replay samples), ``pseudo_reward``, ``entropy``, ``episode_return`` (undiscounted pseudo-return of finished
-episodes); ``eval/`` on fresh rollouts of every skill: ``final_state_accuracy`` (argmax D(z|s_T) == z), spread of the
+episodes, scored by the discriminator when they are logged); ``eval/`` on fresh rollouts of every skill: ``final_state_accuracy`` (argmax D(z|s_T) == z), spread of the
 skills' end points (``end_pairwise_distance``, ``centroid_pairwise_distance``, ``centroid_hull_area`` in 2-D,
 ``centroid_std``/``range`` for half_cheetah's velocities), ``task_distance_median``/``max``, the same for a uniformly
 random policy under ``eval/random_*`` (once); ``time/`` env steps/s and seed-updates/s (all seeds), elapsed seconds.
@@ -39,6 +39,7 @@ from pathlib import Path
 import torch
 import tqdm
 from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDictBase
 from torchrl.envs import TransformedEnv
 
 from umrl.checkpoints.diayn import (
@@ -62,11 +63,9 @@ from umrl.runtime import (
     env_state,
     isolated_rng,
     load_env_state,
-    load_replay_buffer_state,
     log_image,
     log_metrics,
     make_logger,
-    replay_buffer_state,
     rng_state,
     set_rng_state,
 )
@@ -237,6 +236,11 @@ class DIAYNTrainer:
                                  generators=self.generators, act_dim=act_dim, device=device)
         self.warmup = max(cfg.collector.init_random_frames, cfg.replay_buffer.batch_size)
         self.episode_return = torch.zeros(S * n, device=device)
+        # read once: an OmegaConf attribute costs ~50 us, and the loop reads several per env step
+        self.settings = {"num_envs": n, "steps": cfg.collector.frames_per_batch // n,
+                         "random_frames": cfg.collector.init_random_frames,
+                         "updates_per_frame": cfg.optim.updates_per_frame, "total_frames": cfg.collector.total_frames,
+                         "log_every": cfg.log_every, "eval_every": cfg.eval.every}
 
         self.logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, config=cfg, log_dir=self.output_dir)
         self.eval_env.set_seed(seeds[0] + 10_000)
@@ -265,7 +269,7 @@ class DIAYNTrainer:
     @property
     def done(self) -> bool:
         """Whether the budget (``collector.total_frames`` per seed) is reached."""
-        return self.counters["frames"] >= self.cfg.collector.total_frames
+        return self.counters["frames"] >= self.settings["total_frames"]
 
     def state_dict(self) -> dict:
         """Stacked networks, Adam states, counters, the random policy's metrics, the replay, every generator (the
@@ -273,7 +277,7 @@ class DIAYNTrainer:
         return {"loss": self.loss.state_dict(),
                 "optimizers": {name: opt.state_dict() for name, opt in self.update.optimizers.items()},
                 "counters": dict(self.counters), "random_metrics": dict(self.random_metrics),
-                "replay": replay_buffer_state(self.replay.buffer), "rng": rng_state(**self._named_generators()),
+                "replay": self.replay.state_dict(), "rng": rng_state(**self._named_generators()),
                 "envs": {"train": env_state(self.env)}}
 
     def _named_generators(self) -> dict[str, torch.Generator]:
@@ -282,7 +286,7 @@ class DIAYNTrainer:
     def load_state_dict(self, state: dict) -> None:
         """Restore the replay, the generators and the env's state (networks, optimisers and counters are restored at
         construction); the episodes then restart as the saved run's did right after saving."""
-        load_replay_buffer_state(self.replay.buffer, state["replay"])
+        self.replay.load_state_dict(state["replay"])
         load_env_state(self.env, state["envs"]["train"])
         set_rng_state(state["rng"], **self._named_generators())
 
@@ -298,6 +302,7 @@ class DIAYNTrainer:
                                   actor=self.seed_losses[i].sac_loss.actor_network,
                                   discriminator=self.seed_losses[i].discriminator, counters=self.counters,
                                   config=seed_cfg)
+        self._flush_episodes()  # the episodes cut here are not counted
         self._carry = self.env.reset()
         self.episode_return.zero_()
         return path
@@ -319,53 +324,70 @@ class DIAYNTrainer:
     def _act(self, carry) -> torch.Tensor:
         """Actions ``[S * n, act]`` for the env's current state: uniform during the warm-up, else each seed's policy
         with noise from its generator (:func:`seedwise_tanh_normal`)."""
-        S, n = len(self.seeds), self.cfg.env.num_envs
-        if self.counters["frames"] < self.cfg.collector.init_random_frames:
+        S, n = len(self.seeds), self.settings["num_envs"]
+        if self.counters["frames"] < self.settings["random_frames"]:
             return self.replay.draw((n, self.act_dim), "uniform").view(S * n, -1)
         params = self.loss.actor(torch.cat([carry["observation"], carry["skill"]], -1).view(S, n, -1))
         noise = self.replay.draw((n, self.act_dim), "normal")
         return seedwise_tanh_normal(params, noise, self.loss.scale_map).reshape(S * n, -1)
 
-    def _collect(self, steps: int):
-        """``steps`` env steps of every copy: transitions ``[steps * n, S]`` and the finished episodes' returns."""
-        S, n = len(self.seeds), self.cfg.env.num_envs
-        carry, transitions, finished = self._carry, [], []
+    def _collect(self, steps: int) -> TensorDictBase:
+        """``steps`` env steps of every copy: transitions ``[steps * n, S]`` (their states, skills and ends also kept
+        for the logged episode returns)."""
+        S, n = len(self.seeds), self.settings["num_envs"]
+        carry, transitions = self._carry, []
         with torch_threads_beside_physics(self.env):
             for _ in range(steps):
                 carry.set("action", self._act(carry))
                 out, carry = self.env.step_and_maybe_reset(carry)
-                step = out.select(*TRANSITION_KEYS)
-                transitions.append(step)
-                with torch.no_grad():
-                    logits = self.loss.discriminator_logits(step["observation"].view(S, n, -1))
-                    self.episode_return += skill_reward(logits, step["skill"].view(S, n, -1)).view(-1)
-                done = out["next", "done"].view(-1)
-                if done.any():
-                    finished.append(torch.where(done, self.episode_return, torch.nan))
-                    self.episode_return.masked_fill_(done, 0.0)
+                transitions.append(out.select(*TRANSITION_KEYS, ("next", "done")))
         self._carry = carry
         data = transitions[0].unsqueeze(0) if steps == 1 else torch.stack(transitions)  # [steps, S * n]
-        data = data.view(steps, S, n).transpose(1, 2).reshape(steps * n, S)
-        returns = torch.stack(finished).view(-1, S, n).transpose(0, 1).reshape(S, -1) if finished else None
-        return data, returns
+        self._interval["episodes"].append(data.select("observation", "skill", ("next", "done")))
+        if n > 1:
+            data = data.view(steps, S, n).transpose(1, 2)
+        return data.reshape(steps * n, S).exclude(("next", "done"))
+
+    @torch.no_grad()
+    def _flush_episodes(self) -> None:
+        """Score the interval's pending steps (batches of ``[T, S * n]``) by the current discriminators in one call
+        and keep the pseudo-returns ``[S, episodes]`` (NaN-padded) of the episodes that ended in them; unfinished
+        episodes carry over in :attr:`episode_return`."""
+        steps = self._interval["episodes"]
+        if not steps:
+            return
+        self._interval["episodes"] = []
+        S, n = len(self.seeds), self.settings["num_envs"]
+        data = torch.cat(steps)  # [T, S * n]
+        T = data.shape[0]
+        observation = data["observation"].view(T, S, n, -1).permute(1, 0, 2, 3).reshape(S, T * n, -1)
+        skill = data["skill"].view(T, S, n, -1).permute(1, 0, 2, 3).reshape(S, T * n, -1)
+        rewards = skill_reward(self.loss.discriminator_logits(observation), skill)
+        rewards = rewards.view(S, T, n).permute(1, 0, 2).reshape(T, S * n)
+        done, finished = data["next", "done"].view(T, S * n), []
+        for t in range(T):
+            self.episode_return += rewards[t]
+            if done[t].any():
+                finished.append(torch.where(done[t], self.episode_return, torch.nan))
+                self.episode_return.masked_fill_(done[t], 0.0)
+        if finished:
+            self._interval["returns"].append(torch.stack(finished).view(-1, S, n).transpose(0, 1).reshape(S, -1))
 
     def step(self) -> dict[str, float]:
         """One batch: ``collector.frames_per_batch`` env steps per seed into the replay, the updates they earn, an
         evaluation when due. Returns the metrics due at this frame count: the training metrics averaged since the
         last ones (every ``log_every`` frames), an evaluation's; an empty dict between them."""
-        cfg, counters = self.cfg, self.counters
+        counters, settings = self.counters, self.settings
         collect_start = time.perf_counter()
-        data, returns = self._collect(cfg.collector.frames_per_batch // cfg.env.num_envs)
-        self._interval["collect_s"] += time.perf_counter() - collect_start
+        data = self._collect(settings["steps"])
         self.replay.extend(data)
+        self._interval["collect_s"] += time.perf_counter() - collect_start
         counters["frames"] += data.shape[0]
         self._interval["frames"] += data.shape[0]
-        if returns is not None:
-            self._interval["returns"].append(returns)
 
         if len(self.replay) >= self.warmup:
             update_start = time.perf_counter()
-            counters["update_credit"] += data.shape[0] * cfg.optim.updates_per_frame
+            counters["update_credit"] += data.shape[0] * settings["updates_per_frame"]
             for _ in range(int(counters["update_credit"])):
                 out = self.update(self.replay.sample())
                 self._interval["sums"] = out if self._interval["sums"] is None else self._interval["sums"] + out
@@ -376,18 +398,20 @@ class DIAYNTrainer:
         metrics = {}
         if counters["frames"] >= counters["next_log"] or self.done:
             metrics = self._interval_metrics()
-            counters["next_log"] = (counters["frames"] // cfg.log_every + 1) * cfg.log_every
+            counters["next_log"] = (counters["frames"] // settings["log_every"] + 1) * settings["log_every"]
         if counters["frames"] >= counters["next_eval"]:
             metrics.update(self.evaluate(f"skill_coverage_{counters['frames']}.png"))
-            counters["next_eval"] += cfg.eval.every
+            counters["next_eval"] += settings["eval_every"]
         return metrics
 
     def _new_interval(self) -> dict:
-        return {"frames": 0, "updates": 0, "collect_s": 0.0, "update_s": 0.0, "sums": None, "returns": []}
+        return {"frames": 0, "updates": 0, "collect_s": 0.0, "update_s": 0.0, "sums": None, "episodes": [],
+                "returns": []}
 
     def _interval_metrics(self) -> dict[str, float]:
         """The training metrics since the last call (means over its updates and finished episodes; the losses are
         checked finite here, once per interval: a per-update check would wait on a GPU after every update)."""
+        self._flush_episodes()
         interval, counters, seeds = self._interval, self.counters, self.seeds
         self._interval = self._new_interval()
         metrics = {"time/env_steps_per_s": interval["frames"] * len(seeds) / max(interval["collect_s"], 1e-9),
@@ -402,7 +426,7 @@ class DIAYNTrainer:
             for i in range(len(seeds)):
                 metrics.update({f"{self.prefix(i)}train/{k}": float(v[i]) for k, v in mean.items()})
         if interval["returns"]:
-            returns = torch.cat(interval["returns"], dim=1)  # [S, episodes]
+            returns = torch.cat(interval["returns"], dim=1)
             for i in range(len(seeds)):
                 ended = returns[i][~returns[i].isnan()]
                 if ended.numel():

@@ -1,0 +1,224 @@
+"""Several DIAYN seeds in one program: the fused update is SACLoss's, seeds stay independent, the reference schedule,
+the per-seed replay and random streams, exact resume."""
+import pytest
+import torch
+from tensordict import TensorDict
+
+from umrl.checkpoints import load_diayn_checkpoint
+from umrl.envs import make_env
+from umrl.modules.discriminator import make_discriminator
+from umrl.modules.sac import make_skill_actor, make_skill_qvalue
+from umrl.modules.stacked_mlp import StackedMLP, linear_layers
+from umrl.objectives.diayn import DIAYNLoss, DIAYNUpdate, make_diayn_optimizers
+from umrl.objectives.stacked_diayn import StackedDIAYNLoss, StackedDIAYNUpdate
+from umrl.runtime import read_checkpoint
+from umrl.seed_replay import SeedReplay
+from umrl.trainers import compose
+from umrl.trainers.diayn import DIAYNTrainer, train
+from umrl.transforms.skill import SkillTransform
+
+pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
+K, OBS, ACT, B = 4, 3, 2, 32
+LOSSES = ("loss_actor", "loss_qvalue", "loss_alpha", "loss_discriminator")
+
+
+@pytest.fixture
+def float64_modules():
+    """Build and run the losses in float64 (TorchRL's distribution constants too), so the comparisons are tight."""
+    previous = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    yield
+    torch.set_default_dtype(previous)
+
+
+def seed_loss(seed, **kwargs):
+    with torch.random.fork_rng():
+        torch.manual_seed(seed)
+        loss = DIAYNLoss(make_skill_actor(OBS, K, ACT, hidden=(16, 16)), make_skill_qvalue(OBS, K, ACT, hidden=(16, 16)),
+                         make_discriminator(OBS, K, hidden=(16,)), num_skills=K, **kwargs)
+    return loss.make_value_estimator(gamma=0.9)
+
+
+def batch_of(num_seeds, dtype=torch.float64, seed=1):
+    g = torch.Generator().manual_seed(seed)
+    skill = torch.eye(K, dtype=dtype)[torch.randint(K, (num_seeds, B), generator=g)]
+    return TensorDict({
+        "observation": torch.randn(num_seeds, B, OBS, generator=g, dtype=dtype), "skill": skill,
+        "action": torch.rand(num_seeds, B, ACT, generator=g, dtype=dtype) * 1.8 - 0.9,
+        "next": {"observation": torch.randn(num_seeds, B, OBS, generator=g, dtype=dtype), "skill": skill,
+                 "reward": torch.zeros(num_seeds, B, 1, dtype=dtype),
+                 "done": torch.zeros(num_seeds, B, 1, dtype=torch.bool),
+                 "terminated": torch.rand(num_seeds, B, 1, generator=g) < 0.2}}, [num_seeds, B])
+
+
+def run_like_sacloss(functions, batch):
+    """Call ``functions[s](batch[s])`` (a TorchRL loss or update per seed) from ``torch.manual_seed(100 + s)``, then
+    give ``batch`` the standard normal noise each drew (SACLoss samples a' for the target first, then the actor's
+    action); returns their outputs."""
+    outputs, noise, next_noise = [], [], []
+    for s, function in enumerate(functions):
+        torch.manual_seed(100 + s)
+        outputs.append(function(batch[s]))
+        torch.manual_seed(100 + s)
+        next_noise.append(torch.randn(B, ACT, dtype=torch.float64))
+        noise.append(torch.randn(B, ACT, dtype=torch.float64))
+    batch.set("action_noise", torch.stack(noise))
+    batch.set(("next", "action_noise"), torch.stack(next_noise))
+    return outputs
+
+
+@pytest.mark.usefixtures("float64_modules")
+@pytest.mark.parametrize("fixed_alpha", [True, False])
+def test_stacked_loss_equals_torchrls_sacloss_on_the_same_batch_and_noise(fixed_alpha):
+    losses = [seed_loss(s, fixed_alpha=fixed_alpha, target_entropy=-2.0) for s in range(3)]
+    stacked = StackedDIAYNLoss.from_losses(losses, gamma=0.9)
+    batch = batch_of(3)
+    outputs = run_like_sacloss(losses, batch)
+    out = stacked(batch)
+    for s, reference in enumerate(outputs):
+        for key in (*LOSSES, "entropy", "discriminator_accuracy", "pseudo_reward", "alpha"):
+            torch.testing.assert_close(out[key][s], reference[key].detach().to(out[key].dtype), rtol=1e-12,
+                                       atol=1e-12)
+        sum(reference[key] for key in LOSSES).backward()
+    sum(out[key].sum() for key in LOSSES).backward()
+    for s, loss in enumerate(losses):  # every gradient of seed s: its own loss's
+        for network, params, twins in ((stacked.actor, loss.sac_loss.actor_network_params, 1),
+                                       (stacked.qvalue, loss.sac_loss.qvalue_network_params, 2)):
+            mine = []
+            for depth in range(network.depth):
+                weights, biases = network.layer(depth)
+                rows = range(twins * s, twins * (s + 1))
+                mine += [torch.stack([weights[r].grad for r in rows]), torch.stack([biases[r].grad for r in rows])]
+            reference = [p.grad.reshape(twins, *p.shape[twins > 1:]) for p in params.flatten_keys().values()]
+            for a, b in zip(reference, mine, strict=True):
+                torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.usefixtures("float64_modules")
+def test_stacked_updates_follow_diayn_update_and_write_back():
+    """Five fused Adam + Polyak updates of three seeds against TorchRL's SACLoss + SoftUpdate seed by seed; copy_to
+    writes each seed back into a DIAYNLoss with the same parameters."""
+    losses = [seed_loss(s) for s in range(3)]
+    stacked = StackedDIAYNLoss.from_losses(losses, gamma=0.9)
+    fused = StackedDIAYNUpdate(stacked, lr=1e-2, discriminator_lr=1e-2, tau=0.1)
+    updates = [DIAYNUpdate(loss, make_diayn_optimizers(loss, lr=1e-2, discriminator_lr=1e-2), tau=0.1)
+               for loss in losses]
+    for step in range(5):
+        batch = batch_of(3, seed=step)
+        run_like_sacloss(updates, batch)
+        fused(batch)
+    for s, loss in enumerate(losses):
+        copy = seed_loss(s)
+        stacked.copy_to(s, copy)
+        for (name, a), b in zip(loss.state_dict().items(), copy.state_dict().values(), strict=True):
+            torch.testing.assert_close(b, a, rtol=1e-9, atol=1e-10, msg=name)
+
+
+def test_stacked_mlp_evaluates_each_network_as_its_own_linear_layers():
+    """On a CPU network n's output and gradients are those of its own layers, bit for bit, whatever is stacked."""
+    nets = [torch.nn.Sequential(torch.nn.Linear(7, 64), torch.nn.ReLU(), torch.nn.Linear(64, 3)).float()
+            for _ in range(3)]
+    x = torch.randn(3, 128, 7, dtype=torch.float32)
+    stacked = StackedMLP.from_linears([linear_layers(n) for n in nets])
+    stacked(x).square().sum().backward()
+    nets[1](x[1]).square().sum().backward()
+    alone = StackedMLP.from_linears([linear_layers(nets[1])])
+    alone(x[1:2]).square().sum().backward()
+    assert torch.equal(stacked(x)[1], nets[1](x[1]))
+    for depth, layer in enumerate(linear_layers(nets[1])):
+        for mine, single, reference in zip(stacked.layer(depth), alone.layer(depth), (layer.weight, layer.bias)):
+            assert torch.equal(mine[1].grad, single[0].grad) and torch.equal(single[0].grad, reference.grad)
+
+
+def tiny(output_dir, env_name, *overrides):
+    return compose("diayn", [
+        "logger.backend=none", "progress=false", f"output_dir={output_dir}", f"env.name={env_name}", "num_skills=3",
+        "env.horizon=10", "collector.total_frames=120", "collector.init_random_frames=40", "network.hidden=[16,16]",
+        "network.discriminator_hidden=[16]", "replay_buffer.batch_size=16", "replay_buffer.size=1000",
+        "eval.every=80", "eval.episodes_per_skill=2", "checkpoint.every=80", *overrides])
+
+
+DEFAULT_SIZES = ("network.hidden=[300,300]", "network.discriminator_hidden=[300,300]", "replay_buffer.batch_size=128",
+                 "collector.init_random_frames=128", "collector.total_frames=150", "eval.every=150",
+                 "checkpoint.every=150")
+
+
+@pytest.mark.parametrize(("env_name", "sizes"), [("point_nav", ("replay_buffer.batch_size=64",)),
+                                                 ("half_cheetah", ("env.num_envs=2", "replay_buffer.batch_size=64")),
+                                                 ("half_cheetah", DEFAULT_SIZES)])
+def test_a_seed_alone_and_among_others_trains_bit_identically(tmp_path, env_name, sizes):
+    """Seed 1 alone and seed 1 inside seeds=[0,1,2]: the same networks to the last bit after every update (tiny
+    networks, with two env copies per seed, and the recipe's 2x300 networks at batch 128). Bit for bit needs a replay
+    batch that is a multiple of 64 (see umrl.objectives.stacked_diayn); other batches agree to float rounding."""
+    train(tiny(tmp_path / "three", env_name, "seeds=[0,1,2]", *sizes))
+    train(tiny(tmp_path / "alone", env_name, "seed=1", *sizes))
+    together, alone = load_diayn_checkpoint(tmp_path / "three" / "seed1"), load_diayn_checkpoint(tmp_path / "alone")
+    assert together["counters"]["updates"] == alone["counters"]["updates"] > 0
+    for part in ("actor", "discriminator"):
+        assert together[part].keys() == alone[part].keys()
+        assert all(torch.equal(together[part][k], alone[part][k]) for k in alone[part]), part
+
+
+def test_two_seeds_resume_bit_identically(tmp_path):
+    whole = train(tiny(tmp_path / "whole", "half_cheetah", "seeds=[3,5]"))
+    train(tiny(tmp_path / "split", "half_cheetah", "seeds=[3,5]", "collector.total_frames=80"))
+    resumed = train(tiny(tmp_path / "split", "half_cheetah", "seeds=[3,5]", "resume=true"))
+    a, b = read_checkpoint(whole["checkpoint"]), read_checkpoint(resumed["checkpoint"])
+    assert a["counters"] == b["counters"] and a["counters"]["frames"] == 120
+    for key in a["loss"]:
+        assert torch.equal(a["loss"][key], b["loss"][key]), key
+    assert torch.equal(a["replay"]["rows"]["observation"], b["replay"]["rows"]["observation"])
+    assert torch.equal(a["rng"]["generators"]["seed5"], b["rng"]["generators"]["seed5"])
+
+
+def test_the_default_schedule_is_one_env_step_then_one_update(tmp_path):
+    """After the warm-up, every step takes one env step per seed and one update; frames_per_batch of a whole episode
+    per copy is the bulk schedule, with as many updates at once."""
+    trainer = DIAYNTrainer(tiny(tmp_path / "interleaved", "point_nav", "seeds=[0,1]"))
+    counts = []
+    for _ in range(45):
+        trainer.step()
+        counts.append((trainer.counters["frames"], trainer.counters["updates"]))
+    trainer.close()
+    assert counts[38] == (39, 0) and counts[39] == (40, 1)  # updates start when the replay holds the warm-up
+    assert all(u == f - 39 for f, u in counts[39:])
+    bulk = DIAYNTrainer(tiny(tmp_path / "bulk", "point_nav", "env.num_envs=4", "collector.frames_per_batch=40"))
+    bulk.step()
+    assert (bulk.counters["frames"], bulk.counters["updates"]) == (40, 40)
+    bulk.close()
+
+
+def test_seed_replay_keeps_seeds_apart_and_round_trips_through_its_state():
+    gens = [torch.Generator().manual_seed(s) for s in (0, 1)]
+    replay = SeedReplay(5, batch_size=64, generators=gens, act_dim=1)
+    rows = torch.arange(14.0).view(7, 2, 1)  # seed 0 even, seed 1 odd; 7 rows into 5: the first two overwritten
+    replay.extend(TensorDict({"observation": rows[:4]}, [4, 2]))
+    replay.extend(TensorDict({"observation": rows[4:]}, [3, 2]))
+    assert len(replay) == 5
+    sample = replay.sample()["observation"]
+    assert set(sample[0].view(-1).tolist()) <= {4.0, 6.0, 8.0, 10.0, 12.0} and (sample[1] % 2 == 1).all()
+    copy = SeedReplay(5, batch_size=64, generators=[torch.Generator().manual_seed(s) for s in (0, 1)], act_dim=1)
+    copy.load_state_dict(replay.state_dict())
+    assert torch.equal(copy.storage["observation"], replay.storage["observation"]) and copy.cursor == replay.cursor
+    with pytest.raises(ValueError, match=r"expected transitions \[N, 2\]"):
+        replay.extend(TensorDict({"observation": rows[:, :1]}, [7, 1]))
+
+
+def test_each_seeds_copies_reset_from_their_own_streams():
+    """A group of MuJoCo copies resets with the noise of an env seeded alone with its seed; skills are drawn from the
+    group's generator, only where a copy resets."""
+    env = make_env("half_cheetah", 4, seed=0, horizon=3)
+    env.base_env.seed_copies([7, 9])
+    gens = [torch.Generator().manual_seed(7), torch.Generator().manual_seed(9)]
+    env.append_transform(SkillTransform(5, generators=gens))
+    first = env.reset()
+    alone = make_env("half_cheetah", 2, seed=9, horizon=3).reset()
+    torch.testing.assert_close(first["observation"][2:], alone["observation"], rtol=0, atol=0)
+    expected = torch.randint(5, (2,), generator=torch.Generator().manual_seed(9))
+    assert torch.equal(first["skill"][2:].argmax(-1), expected)
+    state = gens[0].get_state()
+    partial = first.clone().set("_reset", torch.tensor([False, False, True, False]).unsqueeze(-1))
+    env.reset(partial)
+    assert torch.equal(gens[0].get_state(), state)  # seed 7's copies did not reset: its stream did not move
+    with pytest.raises(ValueError, match="equal groups"):
+        env.base_env.seed_copies([1, 2, 3])
