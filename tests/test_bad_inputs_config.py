@@ -108,7 +108,7 @@ def test_the_memory_preflight_counts_every_seeds_replay(monkeypatch):
     monkeypatch.setattr(umrl.configs.memory, "available_memory", lambda device: 8 * GIB)
     line = one_error("diayn", ["num_skills=5", "seeds=[0,1,2]", "replay_buffer.size=100000000"], "replay_buffer.size")
     assert line.startswith("replay_buffer.size: got 100000000 (≈ 17.88 GiB of replay buffer); expected at most "
-                           "44738709 with env.name=point_nav, 5 skills and 3 seed(s)")
+                           "44739241 with env.name=point_nav, 5 skills and 3 seed(s) on this machine (8 GiB available)")
 
 
 def test_allocations_that_fit_alone_but_not_together_name_the_others(monkeypatch):

@@ -156,7 +156,8 @@ NO_GPU = pytest.mark.skipif(torch.cuda.is_available(), reason="device=cuda is va
     ("vime", ["dynamics.holdout_fraction=1"], "dynamics.holdout_fraction: got 1; expected a finite number in (0, 1)"),
     ("diayn", ["env.num_envs=16", "collector.frames_per_batch=1601"],
      "collector.frames_per_batch: got 1601; expected a multiple of env.num_envs (16)"),
-    ("diayn", ["seeds=[0,1,0]"], "seeds: got [0, 1, 0]; expected null or a list of distinct integers"),
+    ("diayn", ["seeds=[0,1,0]"], ("seeds: got [0, 1, 0] (repeated entries); expected null or a non-empty list of "
+                                  "distinct integers in [0, 9223372036854775807]")),
     ("suite", ["methods=[scratch,sac]"], ("methods[1]: got 'sac'; expected one of 'uml_diayn', 'uml_random', "
      "'oracle', 'vime_init', 'diayn_init', 'scratch'")),
     ("suite", ["++pretrain.maml.overrides.iterations=-5"],

@@ -129,7 +129,7 @@ def test_diayn_recipe_keeps_everything_on_the_device(tmp_path, device, monkeypat
     assert len(replay) == 40
     assert_on(device, actor=saved["actor"], discriminator=saved["discriminator"], loss=update.loss,
               optimizers={name: opt.state_dict() for name, opt in update.optimizers.items()},
-              buffer=replay.buffer.storage[:len(replay)], sample=replay.sample(),
+              buffer=replay.storage[:len(replay)], sample=replay.sample(),
               evaluations=[result for _, _, result in seen["evaluate_skills"]])
 
 

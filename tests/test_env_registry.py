@@ -105,7 +105,7 @@ def test_a_registered_env_runs_every_recipe(tmp_path, line_env):
         "network.hidden=[8]", "network.discriminator_hidden=[8]", "replay_buffer.batch_size=8", "eval.every=60",
         "eval.episodes_per_skill=2", "checkpoint.every=60"])
     assert 0.0 <= result["eval/final_state_accuracy"] <= 1.0 and "eval/centroid_range" in result  # 1-D coverage
-    assert (tmp_path / "diayn" / "figures" / "skill_coverage.png").is_file()
+    assert (tmp_path / "diayn" / "seed0" / "figures" / "skill_coverage.png").is_file()
 
     result = umrl.trainers.vime.train(compose("vime", [
         *common, f"output_dir={tmp_path / 'vime'}", "iterations=1", "env.num_envs=3", "policy.hidden=[8]",

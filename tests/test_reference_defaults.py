@@ -12,12 +12,13 @@ def recipe(name, overrides=()):
     return compose_config("umrl/configs", name, overrides)
 
 
-@pytest.mark.parametrize("env, horizon, frames", [("point_nav", 100, 51_200), ("half_cheetah", 1000, 10_000_000),
-                                                  ("ant", 1000, 10_000_000)])  # in whole collector batches
+@pytest.mark.parametrize("env, horizon, frames", [("point_nav", 100, 50_000), ("half_cheetah", 1000, 10_000_000),
+                                                  ("ant", 1000, 10_000_000)])
 def test_diayn_episode_and_budget_are_the_references(env, horizon, frames):
     cfg = validate(recipe("diayn", [f"env.name={env}"]), DIAYNConfig)
     assert (cfg.env.horizon, cfg.collector.total_frames) == (horizon, frames)
-    assert cfg.collector.frames_per_batch == cfg.env.num_envs * horizon  # one episode per env copy
+    # one env, one step then one update: the reference's sampler and n_train_repeat=1
+    assert cfg.env.num_envs == cfg.collector.frames_per_batch == 1
     assert DIAYNConfig.notices(OmegaConf.to_container(cfg)) == []  # the default budget is not warned about
     assert (cfg.optim.lr, cfg.replay_buffer.batch_size, cfg.optim.updates_per_frame) == (3e-4, 128, 1.0)
 

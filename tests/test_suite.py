@@ -48,9 +48,27 @@ def test_plan_dependencies_and_shared_pretraining(tmp_path):
     assert {"proposal=diayn", "checkpoint.keep_all=true", "resume=false", "device=cpu",
             f"diayn_checkpoint={diayn_dir}"} <= set(job.args[1])
     # a checkpoint in the run dir makes the recipe resume instead of starting over
-    (diayn_dir / "checkpoints").mkdir(parents=True)
-    (diayn_dir / "checkpoints" / "step_10.pt").write_bytes(b"")
+    assert diayn_dir.name == "seed0"  # the seed's folder in the DIAYN job's, whose checkpoints a resume reads
+    (diayn_dir.parent / "checkpoints").mkdir(parents=True)
+    (diayn_dir.parent / "checkpoints" / "step_10.pt").write_bytes(b"")
     assert "resume=true" in suite.plan_pretraining(cfg, "g", "code")["diayn", "point_nav", 0].overrides
+
+
+def test_an_envs_diayn_seeds_pretrain_in_one_job(tmp_path):
+    """Two pre-training seeds: one DIAYN job trains both (seeds=[0,1]), each seed's MAML(diayn) and DIAYN-init cells
+    wait for it and read that seed's folder in it; the job is done when both seeds are."""
+    cfg = _cfg(tmp_path, "seeds=[0,1]", "pretrain_seeds=[0,1]", "methods=[uml_diayn,diayn_init]")
+    jobs = {job.key: job for job in suite.plan(cfg, group="g", code="code")}
+    assert sorted(k for k in jobs if k.startswith("pretrain/diayn")) == ["pretrain/diayn/point_nav/seeds0-1"]
+    job = jobs["pretrain/diayn/point_nav/seeds0-1"]
+    assert "seeds=[0,1]" in job.args[1] and not job.done()
+    runs = suite.plan_pretraining(cfg, "g", "code")
+    first, second = runs["diayn", "point_nav", 0].run_dir, runs["diayn", "point_nav", 1].run_dir
+    assert (first.name, second.name) == ("seed0", "seed1") and first.parent == second.parent
+    for seed, run_dir in ((0, first), (1, second)):
+        assert jobs[f"pretrain/maml_diayn/point_nav/seed{seed}"].deps == ("pretrain/diayn/point_nav/seeds0-1",)
+        assert f"diayn_checkpoint={run_dir}" in jobs[f"pretrain/maml_diayn/point_nav/seed{seed}"].args[1]
+        assert jobs[f"cell/point_nav/diayn_init/seed{seed}"].deps == ("pretrain/diayn/point_nav/seeds0-1",)
 
 
 def test_a_maml_override_the_inner_step_cannot_take_fails_before_any_run(tmp_path):

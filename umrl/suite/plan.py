@@ -18,6 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 
 import umrl.trainers
 from umrl.checkpoints import DIAYN_FORMAT, MAML_FORMAT, VIME_FORMAT
+from umrl.checkpoints.diayn import seed_run_dir
 from umrl.configs import ConfigError
 from umrl.configs.maml import hvp_errors
 from umrl.configs.suite import RECIPE_SCHEMAS, needed_pretraining, pretrain_seeds, reuse_dir
@@ -28,8 +29,8 @@ from umrl.metatest.cache import config_key, keyed_config, mark_done, run_finishe
 from umrl.runtime import Checkpointer, to_container
 from umrl.validation import InvalidValue
 
-__all__ = ["BUDGET_KEYS", "PretrainRun", "cell_spec", "checkpoint_identity", "hydra_overrides", "keyed_cell", "plan",
-           "plan_ablation", "plan_pretraining", "pretrain_key", "sgd_schedules"]
+__all__ = ["BUDGET_KEYS", "PretrainRun", "cell_spec", "checkpoint_identity", "hydra_overrides", "job_key", "keyed_cell",
+           "plan", "plan_ablation", "plan_pretraining", "pretrain_key", "sgd_schedules"]
 
 RUN_FORMATS = {"diayn": DIAYN_FORMAT, "maml": MAML_FORMAT, "vime": VIME_FORMAT}
 """Each recipe's checkpoint format (a reused run's ``meta`` is read with it)."""
@@ -90,6 +91,7 @@ class PretrainRun:
         key: hash of its resolved config (less :data:`umrl.metatest.cache.UNKEYED`) and the code version; None for
             a reused run.
         budget: its total budget in checkpoint steps (``BUDGET_KEYS``); None for a reused run.
+        job_key: the key of the job that trains it (:func:`pretrain_key`, or one DIAYN job for several seeds).
     """
 
     run: Pretraining
@@ -99,6 +101,7 @@ class PretrainRun:
     overrides: tuple[str, ...] = ()
     key: str | None = None
     budget: int | None = None
+    job_key: str | None = None
 
     @property
     def reused(self) -> bool:
@@ -112,12 +115,16 @@ class PretrainRun:
         return f"{self.run.kind} pre-training on {self.env}, seed {self.seed} -> {self.run_dir}"
 
 
-def _suite_overrides(cfg: DictConfig, run: Pretraining, env: str, seed: int, group: str,
+def _suite_overrides(cfg: DictConfig, run: Pretraining, env: str, seeds: list[int], group: str,
                      runs: Mapping[tuple[str, str, int], PretrainRun]) -> list[str]:
-    """What the suite sets in a recipe's config: env, seed, device, torch threads (``launcher.threads``), logging,
-    MAML's proposal and DIAYN run; then the user's ``pretrain.<recipe>.overrides`` (which win)."""
+    """What the suite sets in a recipe's config: env, seed (DIAYN: ``seeds``, all in one program), device, torch
+    threads (``launcher.threads``), logging, MAML's proposal and DIAYN run; then the user's
+    ``pretrain.<recipe>.overrides`` (which win)."""
+    seed = seeds[0]
     values = {"env.name": env, "seed": seed, "device": cfg.device, "num_threads": cfg.launcher.threads,
               "logger.backend": cfg.logger.backend, "logger.group": group, "progress": False}
+    if run.recipe == "diayn":
+        values["seeds"] = list(seeds)
     if run.recipe == "maml":
         values.update({"proposal": run.proposal, "checkpoint.keep_all": True})
         for needed in run.requires:
@@ -165,52 +172,83 @@ def plan_pretraining(cfg: DictConfig, group: str, code: str) -> dict[tuple[str, 
     errors: list[str] = []
     ordered = sorted(needed_pretraining(list(cfg.methods)), key=lambda r: len(r.requires))  # DIAYN before MAML(diayn)
     for env in cfg.envs:
-        for seed in sorted(set(pretrain_seeds(cfg))):
-            for run in ordered:
+        for run in ordered:
+            fresh = []
+            for seed in sorted(set(pretrain_seeds(cfg))):
                 if not _used(cfg, run, env, seed):
                     continue
                 reuse = reuse_dir(cfg, run, env, seed)
                 if reuse is not None:
                     errors += _reused_skill_errors(cfg, run, reuse)
                     runs[run.kind, env, seed] = PretrainRun(run, env, seed, reuse)
-                    continue
-                overrides = _suite_overrides(cfg, run, env, seed, group, runs)
-                name = f"pretrain.{run.recipe} ({run.kind}, {env}, seed {seed})"
-                try:
-                    composed = umrl.trainers.compose(run.recipe, overrides)
-                except Exception as err:  # noqa: BLE001 -- Hydra's override/compose errors, reported with the rest
-                    errors.append(f"{name}: {type(err).__name__}: {str(err).splitlines()[0]}")
-                    continue
-                values = to_container(composed)
-                problems = check_partial(values, RECIPE_SCHEMAS[run.recipe], prefix=f"{name}: ")
-                if run.recipe == "maml" and not problems:
-                    problems = [f"{name}: {error}" for error in hvp_errors(values)]
-                if not problems:  # env-dependent defaults (budgets, DIAYN's episode length) enter the run's key
-                    fill_env_defaults(values, RECIPE_SCHEMAS[run.recipe])
-                budget = OmegaConf.select(OmegaConf.create(values), BUDGET_KEYS[run.recipe])
-                if budget is None:
-                    problems.append(f"{name}: the recipe config has no {BUDGET_KEYS[run.recipe]!r} (its budget); "
-                                    "update BUDGET_KEYS in umrl/suite/plan.py")
-                if problems:
-                    errors += problems
-                    continue
-                key = config_key(keyed_config(values), code)
-                run_dir = Path(cfg.output_dir).absolute() / "pretrain" / run.kind / env / f"seed{seed}-{key}"
-                has_checkpoint = Checkpointer(run_dir / "checkpoints").latest() is not None
-                overrides += [f"output_dir={_hydra_value(str(run_dir))}", f"resume={_hydra_value(has_checkpoint)}"]
-                runs[run.kind, env, seed] = PretrainRun(run, env, seed, run_dir, tuple(overrides), key, int(budget))
+                else:
+                    fresh.append(seed)
+            # DIAYN trains all of an env's seeds in one program (stacked networks, one update for all seeds)
+            for seeds in ([fresh] if run.recipe == "diayn" and fresh else [[seed] for seed in fresh]):
+                errors += _plan_fresh(cfg, run, env, seeds, group, code, runs)
     if errors:
         raise ConfigError("suite pre-training configs", errors)
     return runs
 
 
-def _pretrain_job(cfg: DictConfig, run: PretrainRun) -> Job:
-    log = Path(cfg.output_dir).absolute() / "logs" / f"pretrain_{run.run.kind}_{run.env}_seed{run.seed}.log"
-    deps = () if run.reused else tuple(pretrain_key(r, run.env, run.seed) for r in run.run.requires)
-    return Job(key=pretrain_key(run.run, run.env, run.seed), fn=umrl.trainers.train, args=(run.run.recipe, list(run.overrides)),
-               deps=deps, done=run.done,
-               on_success=(lambda: None) if run.reused else (lambda: mark_done(run.run_dir)),
-               what=run.describe(), log=log, fresh=True)
+def _plan_fresh(cfg: DictConfig, run: Pretraining, env: str, seeds: list[int], group: str, code: str,
+                runs: dict[tuple[str, str, int], PretrainRun]) -> list[str]:
+    """Plan one job training ``run`` on ``env`` for ``seeds`` (several only for DIAYN), adding a
+    :class:`PretrainRun` per seed to ``runs``; returns the problems of its config."""
+    overrides = _suite_overrides(cfg, run, env, seeds, group, runs)
+    name = f"pretrain.{run.recipe} ({run.kind}, {env}, seed{'s' * (len(seeds) > 1)} {_seeds_name(seeds)})"
+    try:
+        composed = umrl.trainers.compose(run.recipe, overrides)
+    except Exception as err:  # noqa: BLE001 -- Hydra's override/compose errors, reported with the rest
+        return [f"{name}: {type(err).__name__}: {str(err).splitlines()[0]}"]
+    values = to_container(composed)
+    problems = check_partial(values, RECIPE_SCHEMAS[run.recipe], prefix=f"{name}: ")
+    if run.recipe == "maml" and not problems:
+        problems = [f"{name}: {error}" for error in hvp_errors(values)]
+    if not problems:  # env-dependent defaults (budgets, DIAYN's episode length) enter the run's key
+        fill_env_defaults(values, RECIPE_SCHEMAS[run.recipe])
+    budget = OmegaConf.select(OmegaConf.create(values), BUDGET_KEYS[run.recipe])
+    if budget is None:
+        problems.append(f"{name}: the recipe config has no {BUDGET_KEYS[run.recipe]!r} (its budget); "
+                        "update BUDGET_KEYS in umrl/suite/plan.py")
+    if problems:
+        return problems
+    key = config_key(keyed_config(values), code)
+    job_dir = Path(cfg.output_dir).absolute() / "pretrain" / run.kind / env / f"seed{_seeds_name(seeds)}-{key}"
+    has_checkpoint = Checkpointer(job_dir / "checkpoints").latest() is not None
+    overrides += [f"output_dir={_hydra_value(str(job_dir))}", f"resume={_hydra_value(has_checkpoint)}"]
+    job_key = pretrain_key(run, env, seeds[0]) if len(seeds) == 1 else f"pretrain/{run.kind}/{env}/seeds{_seeds_name(seeds)}"
+    for seed in seeds:  # a DIAYN job's seeds each have their folder in it (umrl.checkpoints.diayn.seed_run_dir)
+        run_dir = seed_run_dir(job_dir, seed) if run.recipe == "diayn" else job_dir
+        runs[run.kind, env, seed] = PretrainRun(run, env, seed, run_dir, tuple(overrides), key, int(budget), job_key)
+    return []
+
+
+def _seeds_name(seeds: list[int]) -> str:
+    return "-".join(str(seed) for seed in seeds)
+
+
+def _pretrain_job(cfg: DictConfig, runs: Mapping[tuple[str, str, int], PretrainRun], run: PretrainRun) -> Job:
+    """The job of ``run`` (and of the other seeds its job trains: every run of ``runs`` with its ``job_key``)."""
+    key = job_key(run)
+    together = [other for other in runs.values() if not other.reused and job_key(other) == key] or [run]
+    name = key.removeprefix("pretrain/").replace("/", "_")
+    deps = () if run.reused else tuple(job_key(runs[r.kind, run.env, run.seed]) for r in run.run.requires)
+
+    def finished() -> None:
+        for each in together:
+            mark_done(each.run_dir)
+
+    return Job(key=key, fn=umrl.trainers.train, args=(run.run.recipe, list(run.overrides)), deps=deps,
+               done=lambda: all(each.done() for each in together),
+               on_success=(lambda: None) if run.reused else finished,
+               what="; ".join(each.describe() for each in together), log=Path(cfg.output_dir).absolute() / "logs" /
+               f"pretrain_{name}.log", fresh=True)
+
+
+def job_key(run: PretrainRun) -> str:
+    """The key of the job that trains ``run`` (a reused run's names its own slot)."""
+    return run.job_key or pretrain_key(run.run, run.env, run.seed)
 
 
 def checkpoint_identity(run: PretrainRun, checkpoint: str | os.PathLike) -> str:
@@ -262,8 +300,9 @@ def plan(cfg: DictConfig, group: str, code: str = "", runs: Mapping | None = Non
                 if pretraining is not None:
                     run = runs[pretraining.kind, env, pseed]
                     for needed in (*(() if run.reused else pretraining.requires), pretraining):
-                        jobs.setdefault(pretrain_key(needed, env, pseed), _pretrain_job(cfg, runs[needed.kind, env, pseed]))
-                    deps, checkpoint = (pretrain_key(pretraining, env, pseed),), str(run.run_dir)
+                        needed_run = runs[needed.kind, env, pseed]
+                        jobs.setdefault(job_key(needed_run), _pretrain_job(cfg, runs, needed_run))
+                    deps, checkpoint = (job_key(run),), str(run.run_dir)
                     checkpoint_id = checkpoint_identity(run, checkpoint)
                 for schedule in _cell_schedules(cfg, method.name):
                     suffix = "" if schedule == default_lr_schedule(method.name) else f".{schedule}"
