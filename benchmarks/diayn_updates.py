@@ -15,8 +15,8 @@ are built from the same seeds and their timed repeats (``--steps`` steps each) i
 
 The **arithmetic floor** is one seed-update's FLOPs (``torch.utils.flop_counter.FlopCounterMode`` around one update
 of one seed: the matmuls of forward and backward; Adam's element-wise work is not counted) divided by the matmul rate
-of the update's own dominant GEMM ([batch, 300] @ [300, 300], ``torch.mm``), measured in the same run: ``floor
-seed-upd/s`` = rate / FLOPs, and ``of floor`` = seed-updates/s / that. Batched matmuls of several seeds can run above
+of the update's own dominant GEMM ([batch, 300] @ [300, 300], ``torch.mm``), measured in every repeat of the same
+run (median; its range is printed): ``floor seed-upd/s`` = rate / FLOPs, and ``of floor`` = seed-updates/s / that. Batched matmuls of several seeds can run above
 that one-matrix rate, so ``of floor`` can exceed 1 at large S.
 """
 from __future__ import annotations
@@ -141,12 +141,8 @@ def main() -> None:
     tune_process(num_threads=args.threads)  # as the recipes run
     modes = [(False, False)] + [(True, False)] * args.compile + [(False, True)] * args.cudagraphs
     modes += [(True, True)] * (args.compile and args.cudagraphs)
-    rate = matmul_rate(device, args.batch_size, args.hidden, args.hidden)
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else f"cpu, {torch.get_num_threads()} threads"
-    print(f"device {name}; batch {args.batch_size}, networks 2x{args.hidden}; "
-          f"[{args.batch_size},{args.hidden}]@[{args.hidden},{args.hidden}] matmul {rate / 1e9:.1f} GFLOP/s")
-    print(f"{'env':<13} {'variant':<19} {'S':>3} {'loop s-upd/s':>13} {'update s-upd/s':>15} {'of floor':>9} "
-          f"{'vs S=1':>7} {'floor s-upd/s':>14}")
+    gemm = f"[{args.batch_size},{args.hidden}]@[{args.hidden},{args.hidden}]"
     with tempfile.TemporaryDirectory() as tmp:
         for env_name in args.envs:
             variants = [Variant(env_name, s, args, Path(tmp), compile=c, cudagraphs=g) for c, g in modes
@@ -154,16 +150,23 @@ def main() -> None:
             one_seed = next((v for v in variants if v.num_seeds == 1 and v.name == "eager"), None)
             probe = one_seed or Variant(env_name, 1, args, Path(tmp), compile=False, cudagraphs=False)
             flops = count_flops(probe.trainer.update, probe.trainer.replay.sample())
-            floor = rate / flops
             sacloss = SACLossVariant(probe, args)
             loops = {id(v): [] for v in variants}
             updates = {id(v): [] for v in variants}
-            sac_times = []
-            for _ in range(args.repeats):
+            sac_times, rates = [], []
+            for _ in range(args.repeats):  # the GEMM rate too: a shared machine's speed drifts between minutes
+                rates.append(matmul_rate(device, args.batch_size, args.hidden, args.hidden))
                 for variant in variants:
                     loops[id(variant)].append(variant.steps(args.steps))
                     updates[id(variant)].append(variant.updates(args.steps))
                 sac_times.append(sacloss.updates(args.steps))
+            rate = statistics.median(rates)
+            floor = rate / flops
+            print(f"device {name}; batch {args.batch_size}, networks 2x{args.hidden}; {gemm} matmul "
+                  f"{rate / 1e9:.1f} GFLOP/s (median of {args.repeats}, {min(rates) / 1e9:.1f}-"
+                  f"{max(rates) / 1e9:.1f}); {flops / 1e9:.3f} GFLOP per seed-update")
+            print(f"{'env':<13} {'variant':<19} {'S':>3} {'loop s-upd/s':>13} {'update s-upd/s':>15} {'of floor':>9} "
+                  f"{'vs S=1':>7} {'floor s-upd/s':>14}")
             base = None
             for variant in variants:
                 loop = args.steps * variant.num_seeds / statistics.median(loops[id(variant)])

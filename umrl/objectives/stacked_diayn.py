@@ -179,8 +179,7 @@ class StackedDIAYNLoss(LossModule):
                                        (self.qvalue, sac.qvalue_network_params, 2),
                                        (self.target_qvalue, sac.target_qvalue_network_params, 2)):
             rows = slice(seed_index * twins, (seed_index + 1) * twins)
-            for depth, (weight, bias) in enumerate(_weight_bias_pairs(params)):
-                w, b = stacked.stacked(depth)
+            for (weight, bias), w, b in zip(_weight_bias_pairs(params), stacked.weights, stacked.biases, strict=True):
                 weight.data.copy_(w[rows].reshape(weight.shape))
                 bias.data.copy_(b[rows].reshape(bias.shape))
         self.discriminator.copy_to(seed_index, linear_layers(loss.discriminator))
