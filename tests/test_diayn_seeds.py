@@ -84,11 +84,8 @@ def test_stacked_loss_equals_torchrls_sacloss_on_the_same_batch_and_noise(fixed_
     for s, loss in enumerate(losses):  # every gradient of seed s: its own loss's
         for network, params, twins in ((stacked.actor, loss.sac_loss.actor_network_params, 1),
                                        (stacked.qvalue, loss.sac_loss.qvalue_network_params, 2)):
-            mine = []
-            for depth in range(network.depth):
-                weights, biases = network.layer(depth)
-                rows = range(twins * s, twins * (s + 1))
-                mine += [torch.stack([weights[r].grad for r in rows]), torch.stack([biases[r].grad for r in rows])]
+            rows = slice(twins * s, twins * (s + 1))
+            mine = [t.grad[rows] for pair in zip(network.weights, network.biases) for t in pair]
             reference = [p.grad.reshape(twins, *p.shape[twins > 1:]) for p in params.flatten_keys().values()]
             for a, b in zip(reference, mine, strict=True):
                 torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
@@ -114,20 +111,22 @@ def test_stacked_updates_follow_diayn_update_and_write_back():
             torch.testing.assert_close(b, a, rtol=1e-9, atol=1e-10, msg=name)
 
 
-def test_stacked_mlp_evaluates_each_network_as_its_own_linear_layers():
-    """On a CPU network n's output and gradients are those of its own layers, bit for bit, whatever is stacked."""
+@pytest.mark.parametrize("per_network_below", [0.0, 100.0])
+def test_stacked_mlp_evaluates_each_network_as_its_own_linear_layers(per_network_below):
+    """Batched or network by network, network n's output and gradients are those of its own layers (to float32
+    rounding: a batched GEMM may round a weight gradient differently)."""
     nets = [torch.nn.Sequential(torch.nn.Linear(7, 64), torch.nn.ReLU(), torch.nn.Linear(64, 3)).float()
             for _ in range(3)]
     x = torch.randn(3, 128, 7, dtype=torch.float32)
     stacked = StackedMLP.from_linears([linear_layers(n) for n in nets])
+    stacked.PER_NETWORK_BELOW = per_network_below
+    assert stacked.per_network_matmuls(x) == (per_network_below > 0)
     stacked(x).square().sum().backward()
     nets[1](x[1]).square().sum().backward()
-    alone = StackedMLP.from_linears([linear_layers(nets[1])])
-    alone(x[1:2]).square().sum().backward()
-    assert torch.equal(stacked(x)[1], nets[1](x[1]))
-    for depth, layer in enumerate(linear_layers(nets[1])):
-        for mine, single, reference in zip(stacked.layer(depth), alone.layer(depth), (layer.weight, layer.bias)):
-            assert torch.equal(mine[1].grad, single[0].grad) and torch.equal(single[0].grad, reference.grad)
+    torch.testing.assert_close(stacked(x)[1], nets[1](x[1]), rtol=0, atol=1e-6)
+    for layer, weight, bias in zip(linear_layers(nets[1]), stacked.weights, stacked.biases, strict=True):
+        torch.testing.assert_close(weight.grad[1], layer.weight.grad, rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(bias.grad[1], layer.bias.grad, rtol=1e-5, atol=1e-5)
 
 
 def tiny(output_dir, env_name, *overrides):
@@ -143,20 +142,27 @@ DEFAULT_SIZES = ("network.hidden=[300,300]", "network.discriminator_hidden=[300,
                  "checkpoint.every=150")
 
 
-@pytest.mark.parametrize(("env_name", "sizes"), [("point_nav", ("replay_buffer.batch_size=64",)),
-                                                 ("half_cheetah", ("env.num_envs=2", "replay_buffer.batch_size=64")),
+SEED_ROUNDING = 1e-6
+"""The most a seed's parameters may differ between a run alone and among others after these tests' 23-82 updates
+(measured: at most 3.0e-8 in all three; batched and single GEMMs and the fused Adam round some elements
+differently)."""
+
+
+@pytest.mark.parametrize(("env_name", "sizes"), [("point_nav", ()), ("half_cheetah", ("env.num_envs=2",)),
                                                  ("half_cheetah", DEFAULT_SIZES)])
-def test_a_seed_alone_and_among_others_trains_bit_identically(tmp_path, env_name, sizes):
-    """Seed 1 alone and seed 1 inside seeds=[0,1,2]: the same networks to the last bit after every update (tiny
-    networks, with two env copies per seed, and the recipe's 2x300 networks at batch 128). Bit for bit needs a replay
-    batch that is a multiple of 64 (see umrl.objectives.stacked_diayn); other batches agree to float rounding."""
+def test_a_seed_alone_and_among_others_trains_the_same_networks(tmp_path, env_name, sizes):
+    """Seed 1 alone and seed 1 inside seeds=[0,1,2]: the same data, the same updates, the same networks to float
+    rounding (tiny networks, with two env copies per seed, and the recipe's 2x300 networks at batch 128)."""
     train(tiny(tmp_path / "three", env_name, "seeds=[0,1,2]", *sizes))
     train(tiny(tmp_path / "alone", env_name, "seed=1", *sizes))
     together, alone = load_diayn_checkpoint(tmp_path / "three" / "seed1"), load_diayn_checkpoint(tmp_path / "alone")
     assert together["counters"]["updates"] == alone["counters"]["updates"] > 0
     for part in ("actor", "discriminator"):
         assert together[part].keys() == alone[part].keys()
-        assert all(torch.equal(together[part][k], alone[part][k]) for k in alone[part]), part
+        worst = max((together[part][k] - alone[part][k]).abs().max().item() for k in alone[part])
+        assert worst <= SEED_ROUNDING, (part, worst)
+    other = load_diayn_checkpoint(tmp_path / "three" / "seed0")  # and the seeds did train apart
+    assert max((other["actor"][k] - alone["actor"][k]).abs().max().item() for k in alone["actor"]) > 1e-3
 
 
 def test_two_seeds_resume_bit_identically(tmp_path):
@@ -222,3 +228,25 @@ def test_each_seeds_copies_reset_from_their_own_streams():
     assert torch.equal(gens[0].get_state(), state)  # seed 7's copies did not reset: its stream did not move
     with pytest.raises(ValueError, match="equal groups"):
         env.base_env.seed_copies([1, 2, 3])
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("cudagraphs", [False, True])
+def test_stacked_update_trains_on_cuda(cudagraphs):
+    losses = [seed_loss(s).float() for s in range(2)]
+    stacked = StackedDIAYNLoss.from_losses(losses, gamma=0.9).to("cuda")
+    update = StackedDIAYNUpdate(stacked, lr=1e-3, discriminator_lr=1e-3, tau=0.01, cudagraphs=cudagraphs)
+    before = [p.detach().clone() for p in stacked.actor.parameters()]
+    for step in range(8):  # CUDA graphs capture after their warm-up calls
+        batch = batch_of(2, dtype=torch.float32, seed=step).to("cuda")
+        batch.set("action_noise", torch.randn(2, B, ACT, device="cuda"))
+        batch.set(("next", "action_noise"), torch.randn(2, B, ACT, device="cuda"))
+        out = update(batch)
+    assert torch.isfinite(out["loss_qvalue"]).all()
+    assert any(not torch.equal(a, b) for a, b in zip(before, stacked.actor.parameters()))
+
+
+def test_cudagraphs_off_a_gpu_is_refused():
+    stacked = StackedDIAYNLoss.from_losses([seed_loss(0).float()], gamma=0.9)
+    with pytest.raises(ValueError, match="cudagraphs=True needs the loss on a CUDA device"):
+        StackedDIAYNUpdate(stacked, lr=1e-3, discriminator_lr=1e-3, tau=0.01, cudagraphs=True)

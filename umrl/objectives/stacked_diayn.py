@@ -11,11 +11,12 @@ batch; the actor loss ``alpha log pi(a~|s) - min_i Q_i(s, a~)`` with the Q-netwo
 tanh-Gaussian of TorchRL's ``TanhNormal`` (``NormalParamExtractor``'s biased softplus scale).
 
 The action noise is an input (``"action_noise"`` and ``("next", "action_noise")``, standard normal ``[S, B, act]``)
-so that each seed's noise comes from that seed's own generator (:class:`umrl.data.seed_replay.SeedReplay` draws it
-with the sample): seed ``s``'s numbers never depend on which other seeds share the program.
+so that each seed's noise comes from that seed's own generator (:class:`umrl.seed_replay.SeedReplay` draws it with
+the sample): seed ``s``'s draws never depend on which other seeds share the program.
 
 :class:`StackedDIAYNUpdate` takes one Adam step on every seed's networks and Polyak-averages the targets. Adam and
-Polyak averaging are element-wise, so one optimiser over stacked parameters is S independent optimisers exactly.
+Polyak averaging are element-wise, so one optimiser over stacked parameters is S independent optimisers (to float
+rounding: a fused kernel's vectorised loop and its tail may round an element differently).
 """
 from __future__ import annotations
 
@@ -161,10 +162,11 @@ class StackedDIAYNLoss(LossModule):
             return StackedMLP([w.flatten(0, -3) for w in weights], [b.flatten(0, -2) for b in biases])
 
         sac = [loss.sac_loss for loss in losses]
+        targets = [_weight_bias_pairs(s.target_qvalue_network_params) for s in sac]
         return cls(
             stacked_pairs([_weight_bias_pairs(s.actor_network_params) for s in sac]),
             stacked_pairs([_weight_bias_pairs(s.qvalue_network_params) for s in sac]),
-            stacked_pairs([_weight_bias_pairs(s.target_qvalue_network_params) for s in sac]),
+            stacked_pairs(targets),
             StackedMLP.from_linears([linear_layers(loss.discriminator) for loss in losses]),
             torch.stack([s.log_alpha.detach() for s in sac]).reshape(len(losses)),
             num_skills=first.num_skills, gamma=gamma, fixed_alpha=first.fixed_alpha,

@@ -9,7 +9,9 @@ one batched matmul per layer for all seeds), their env copies are one batched en
 their transitions one replay of rows ``[S]`` (:class:`~umrl.seed_replay.SeedReplay`). Each seed draws everything
 random from its own streams (a torch generator: actions, replay indices, action noise, skills at reset; a numpy
 generator: MuJoCo's reset noise), and its networks are initialised as a single-seed run initialises them, so seed
-``s``'s run does not depend on which seeds share the program (``tests/test_diayn_seeds.py``).
+``s``'s run sees the same data and takes the same updates whichever seeds share the program, to float rounding
+(batched and single kernels may round an element differently: 3e-8 after 80 updates, measured in
+``tests/test_diayn_seeds.py``).
 
 Schedule: each :meth:`DIAYNTrainer.step` takes ``collector.frames_per_batch`` env steps per seed (default
 ``env.num_envs``: one step of each copy), then ``optim.updates_per_frame`` fused updates per new frame: with the
@@ -41,6 +43,7 @@ import tqdm
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
 from torchrl.envs import TransformedEnv
+from torchrl.objectives import SoftUpdate
 
 from umrl.checkpoints.diayn import (
     DIAYN_SEEDS_FORMAT,
@@ -55,7 +58,7 @@ from umrl.envs.threads import torch_threads_beside_physics
 from umrl.modules.discriminator import make_discriminator
 from umrl.modules.sac import make_skill_actor, make_skill_qvalue
 from umrl.objectives.diayn import DIAYNLoss
-from umrl.objectives.stacked_diayn import StackedDIAYNLoss, StackedDIAYNUpdate
+from umrl.objectives.stacked_diayn import StackedDIAYNLoss, StackedDIAYNUpdate, tanh_normal_sample
 from umrl.runtime import (
     Checkpointer,
     check_finite,
@@ -107,32 +110,6 @@ def seed_reset_noise(env, seeds: list[int], backend: str) -> None:
                          "use env.backend=default (the batched MuJoCo env) for several seeds.")
 
 
-SIMD_BLOCK = 64
-"""Elements per seed are padded to a multiple of this in :func:`seedwise_tanh_normal` (a whole number of the widest
-vectorised loop's blocks: 16 float32 lanes, unrolled)."""
-
-
-def seedwise_tanh_normal(params: torch.Tensor, noise: torch.Tensor, scale_map) -> torch.Tensor:
-    """``tanh(loc + scale * noise)`` of every seed's policy head ``params`` ``[S, M, 2 act]`` (``loc`` and the raw
-    scale, mapped by ``scale_map``, a TorchRL ``NormalParamExtractor``) with ``noise`` ``[S, M, act]`` -> ``[S, M, act]``.
-
-    The arithmetic of :func:`~umrl.objectives.stacked_diayn.tanh_normal_sample`, on each seed's elements padded to a
-    whole number of :data:`SIMD_BLOCK` blocks: torch's element-wise kernels run a vectorised loop over the flattened
-    tensor and a scalar loop over its tail, and the two round ``tanh`` and ``softplus`` differently by an ulp, so
-    unpadded, the same seed's action would depend on how many seeds come before it (measured: 1.2e-7).
-    """
-    S, M, width = noise.shape
-    size = M * width
-    pad = -size % SIMD_BLOCK
-
-    def padded(x: torch.Tensor) -> torch.Tensor:
-        return torch.nn.functional.pad(x.reshape(S, size), (0, pad))
-
-    loc, raw_scale = params.chunk(2, -1)
-    scale = scale_map.scale_mapping(padded(raw_scale)).clamp_min(scale_map.scale_lb)
-    return torch.tanh(padded(loc) + scale * padded(noise))[:, :size].reshape(S, M, width)
-
-
 def evaluate(cfg, env, actor, discriminator, num_skills, step, figure_path, logger, baseline, seed: int,
              prefix: str = "") -> dict:
     """Fresh rollouts of every skill of one seed: coverage metrics, final-state accuracy, the figure at
@@ -165,8 +142,10 @@ def seed_networks(cfg: DictConfig, seed: int, obs_dim: int, act_dim: int, num_sk
         discriminator = make_discriminator(obs_dim, num_skills, hidden=list(cfg.network.discriminator_hidden),
                                            input_dims=disc_dims)
         qvalue = make_skill_qvalue(obs_dim, num_skills, act_dim, hidden=hidden)
-        return DIAYNLoss(actor, qvalue, discriminator, num_skills=num_skills, alpha_init=cfg.optim.alpha,
+        loss = DIAYNLoss(actor, qvalue, discriminator, num_skills=num_skills, alpha_init=cfg.optim.alpha,
                          fixed_alpha=cfg.optim.fixed_alpha, target_entropy=-float(act_dim))
+    SoftUpdate(loss.sac_loss, tau=cfg.optim.tau)  # declares the targets' updater (the stacked update averages them)
+    return loss
 
 
 class DIAYNTrainer:
@@ -323,13 +302,14 @@ class DIAYNTrainer:
     @torch.no_grad()
     def _act(self, carry) -> torch.Tensor:
         """Actions ``[S * n, act]`` for the env's current state: uniform during the warm-up, else each seed's policy
-        with noise from its generator (:func:`seedwise_tanh_normal`)."""
+        with noise from its generator."""
         S, n = len(self.seeds), self.settings["num_envs"]
         if self.counters["frames"] < self.settings["random_frames"]:
             return self.replay.draw((n, self.act_dim), "uniform").view(S * n, -1)
         params = self.loss.actor(torch.cat([carry["observation"], carry["skill"]], -1).view(S, n, -1))
         noise = self.replay.draw((n, self.act_dim), "normal")
-        return seedwise_tanh_normal(params, noise, self.loss.scale_map).reshape(S * n, -1)
+        action, _ = tanh_normal_sample(*self.loss.scale_map(params), noise)
+        return action.reshape(S * n, -1)
 
     def _collect(self, steps: int) -> TensorDictBase:
         """``steps`` env steps of every copy: transitions ``[steps * n, S]`` (their states, skills and ends also kept
