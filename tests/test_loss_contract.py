@@ -1,8 +1,14 @@
-"""Every loss honours TorchRL's contract: forward(td), set_keys, in_keys / out_keys, repr, make_value_estimator."""
+"""Every loss honours TorchRL's contract: forward(td), set_keys, in_keys / out_keys (per instance, select_out_keys),
+repr, make_value_estimator, target updaters built on the loss itself."""
+import copy
+import warnings
+
 import pytest
 import torch
 from tensordict import TensorDict
+from torchrl.objectives import SoftUpdate
 from torchrl.objectives.utils import ValueEstimators
+from torchrl.objectives.value import TD0Estimator
 
 from umrl.modules.bnn import BayesianDynamics
 from umrl.modules.discriminator import make_discriminator
@@ -79,6 +85,80 @@ def test_set_keys_renames_what_in_keys_lists_and_refuses_unknown_names(name):
     assert any("renamed" in (k if isinstance(k, tuple) else (k,)) for k in loss.in_keys)
     with pytest.raises(ValueError, match="not an accepted tensordict key"):
         loss.set_keys(no_such_key="x")
+
+
+def _loss_and_batch(name):
+    if name == "vime":
+        bnn = BayesianDynamics(obs_dim=OBS, act_dim=ACT)
+        g = torch.Generator().manual_seed(0)
+        obs, act = torch.randn(8, OBS, generator=g), torch.randn(8, ACT, generator=g)
+        bnn.update_normalizer(obs, act, obs + act)
+        return VIMELoss(bnn, dataset_size=8), TensorDict({"observation": obs, "action": act,
+                                                          ("next", "observation"): obs + act}, [8])
+    loss, support, query = _maml()
+    if name == "maml":
+        return loss, loss.pack(support, query)
+    return ImportanceSamplingLoss(loss.policy), support[0]
+
+
+@pytest.mark.parametrize("name", ["maml", "vime", "importance_sampling"])
+def test_out_keys_belong_to_each_instance_and_select_out_keys_filters_the_forward(name):
+    loss, batch = _loss_and_batch(name)
+    other = _loss_and_batch(name)[0]
+    default = list(other.out_keys)
+    loss.out_keys.append("extra")
+    assert other.out_keys == default and _loss_and_batch(name)[0].out_keys == default
+    loss.out_keys = default[:1]
+    assert loss.out_keys == default[:1] and other.out_keys == default
+    loss.out_keys = default
+    selected = [default[0], default[-1]]
+    assert loss.select_out_keys(*selected) is loss
+    assert loss.out_keys == selected and sorted(loss(batch).keys()) == sorted(selected)
+    assert other.out_keys == default and set(other(batch).keys()) == set(default)
+    loss.reset_out_keys()
+    assert loss.out_keys == default and set(loss(batch).keys()) == set(default)
+
+
+@pytest.mark.parametrize("name", ["maml", "diayn", "vime", "importance_sampling"])
+def test_make_value_estimator_without_arguments_builds_the_default(name):
+    loss = _losses()[name]
+    assert loss.make_value_estimator() is loss
+    assert loss.value_type == type(loss).default_value_estimator
+
+
+def test_vime_loss_has_no_default_value_estimator_and_attaches_a_given_one():
+    loss = VIMELoss(BayesianDynamics(obs_dim=OBS, act_dim=ACT), dataset_size=8)
+    assert loss.make_value_estimator() is loss and loss.value_estimator is None and loss.value_type is None
+    estimator = TD0Estimator(gamma=0.9, value_network=None)
+    assert loss.make_value_estimator(estimator).value_estimator is estimator and loss.value_type is TD0Estimator
+    assert loss.make_value_estimator().value_estimator is None and loss.value_type is None
+    for value_type in (ValueEstimators.TD0, "no_such_estimator"):
+        with pytest.raises(ValueError, match="value_type: got .*; expected None .*ValueEstimatorBase"):
+            loss.make_value_estimator(value_type)
+    with pytest.raises(ValueError, match=r"hyperparams: got \['gamma'\]"):
+        loss.make_value_estimator(gamma=0.9)
+
+
+def test_soft_update_of_diayn_loss_updates_the_targets_as_on_its_sac_loss():
+    loss = _diayn()
+    twin = copy.deepcopy(loss)
+    updater, reference = SoftUpdate(loss, tau=0.01), SoftUpdate(twin.sac_loss, tau=0.01)
+    before = loss.sac_loss.target_qvalue_network_params.clone()
+    for each in (loss, twin):
+        qvalue = list(each.sac_loss.qvalue_network_params.values(True, True))
+        torch.manual_seed(0)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            each(_diayn_batch())["loss_qvalue"].backward()
+        assert not [w for w in caught if "No target network updater" in str(w.message)]
+        torch.optim.SGD(qvalue, lr=0.1).step()
+    updater.step()
+    reference.step()
+    targets = loss.sac_loss.target_qvalue_network_params
+    assert (targets == twin.sac_loss.target_qvalue_network_params).all()
+    assert not (targets == before).all() and not (targets == loss.sac_loss.qvalue_network_params.data).all()
+    assert loss.target_qvalue_network_params is targets
+    assert list(loss.state_dict()) == list(twin.state_dict())  # the targets stay under sac_loss only
 
 
 def test_maml_forward_reads_renamed_keys_and_gives_the_same_numbers():

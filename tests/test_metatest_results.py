@@ -1,5 +1,9 @@
 """Meta-test results: tidy rows round trip, curves and the summary table, both SGD schedules side by side, the
-ablation table, the pre-training note and the summary's provenance section."""
+ablation table, the pre-training note, the summary's provenance section, and figures that leave matplotlib's backend
+alone."""
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -148,3 +152,24 @@ def test_summary_records_commit_command_hardware_and_wall_time():
     assert markdown.index("NOTE") < markdown.index("TABLE") < markdown.index("## Provenance")
     assert f"- commit: {record['commit']}" in markdown and "- command: python benchmarks/suite.py" in markdown
     assert "## Meta-training ablation" in markdown
+
+
+def test_figures_leave_the_callers_matplotlib_backend_alone(tmp_path):
+    """A notebook's backend stays selected through importing umrl.metatest and drawing figures; pyplot stays out."""
+    probe = f"""
+import sys
+import matplotlib
+matplotlib.use("svg")
+import numpy as np
+import torch
+import umrl.metatest
+from umrl.skill_coverage import plot_coverage
+x = np.arange(3.0)
+curves = umrl.metatest.plot_adaptation_curves({{"env": {{"uml_diayn": umrl.metatest.Curve(x, x, x - 1, x + 1)}}}},
+                                              {str(tmp_path / "curves.png")!r})
+coverage = plot_coverage(torch.randn(10, 2), {str(tmp_path / "coverage.png")!r})
+print(matplotlib.get_backend(), curves.is_file(), coverage, "matplotlib.pyplot" in sys.modules)
+"""
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["svg", "True", str(tmp_path / "coverage.png"), "False"]
+    assert (tmp_path / "curves.png").read_bytes()[:4] == (tmp_path / "coverage.png").read_bytes()[:4] == b"\x89PNG"

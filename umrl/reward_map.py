@@ -167,13 +167,13 @@ def _square(ax, half_width: float, **kwargs) -> None:
 def plot_territories(rmap: RewardMap, path: str | Path, *, title: str = "") -> Path:
     """Each skill's territory (argmax_z D(z|s)) on ``[-R, R]²`` and, zoomed, on the near-origin square, with the
     goal square and the evaluation goals; written to ``path`` (PNG)."""
-    import matplotlib
+    from matplotlib import colormaps
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Circle
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    cmap = plt.get_cmap("tab20", 20)
-    fig, axes = plt.subplots(1, 2, figsize=(12, 5.5))
+    cmap = colormaps["tab20"].resampled(20)
+    fig = Figure(figsize=(12, 5.5))
+    axes = fig.subplots(1, 2)
     for ax, territory, half in ((axes[0], rmap.territory, rmap.radius),
                                 (axes[1], rmap.inner_territory, rmap.inner_half_width)):
         ax.imshow(territory % 20, origin="lower", extent=(-half, half, -half, half), cmap=cmap, vmin=0, vmax=19,
@@ -184,7 +184,7 @@ def plot_territories(rmap: RewardMap, path: str | Path, *, title: str = "") -> P
         ax.scatter(rmap.eval_goals[:, 0], rmap.eval_goals[:, 1], marker="x", c="red", s=25, label="eval goals")
         ax.set_aspect("equal")
     _square(axes[0], rmap.inner_half_width, edgecolor="k", linestyle="--")
-    axes[0].add_patch(matplotlib.patches.Circle((0, 0), rmap.radius, fill=False, edgecolor="k", linestyle=":"))
+    axes[0].add_patch(Circle((0, 0), rmap.radius, fill=False, edgecolor="k", linestyle=":"))
     axes[0].set_title(f"territories on [-{rmap.radius:g}, {rmap.radius:g}]² (colour = skill mod 20)")
     axes[1].set_title(f"[-{rmap.inner_half_width:g}, {rmap.inner_half_width:g}]²: "
                       f"{rmap.inner_territory.unique().numel()} of {rmap.num_skills} skills win here")
@@ -196,14 +196,12 @@ def plot_territories(rmap: RewardMap, path: str | Path, *, title: str = "") -> P
 def plot_rays(rmap: RewardMap, path: str | Path, *, skills: int = 4, rays: int = 8, title: str = "") -> Path:
     """r_z along ``rays`` evenly spaced rays from the origin (x: distance) for ``skills`` skills (one panel each),
     with the goal square's half width marked; written to ``path`` (PNG)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     chosen = torch.linspace(0, rmap.num_skills - 1, min(skills, rmap.num_skills)).round().long().unique()
     step = max(1, len(rmap.angles) // rays)
-    fig, axes = plt.subplots(1, len(chosen), figsize=(4 * len(chosen), 3.6), sharey=True, squeeze=False)
+    fig = Figure(figsize=(4 * len(chosen), 3.6))
+    axes = fig.subplots(1, len(chosen), sharey=True, squeeze=False)
     for ax, z in zip(axes[0], chosen.tolist()):
         for a in range(0, len(rmap.angles), step):
             ax.plot(rmap.radii, rmap.ray_rewards[a, :, z], lw=1,

@@ -234,14 +234,12 @@ def log_image(logger: Logger | None, name: str, path: str | os.PathLike, step: i
 
 
 def save_figure(fig: Any, path: str | os.PathLike, *, dpi: int = 120) -> Path:
-    """Lay out a matplotlib ``fig``, write it to ``path`` (PNG; parent folders created) and close it."""
+    """Lay out ``fig``, a :class:`matplotlib.figure.Figure` made without pyplot (nothing to close, no backend
+    selected), and write it to ``path`` (PNG; parent folders created)."""
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=dpi)
-    import matplotlib.pyplot as plt  # the callers chose the backend
-
-    plt.close(fig)
     return path
 
 

@@ -246,20 +246,19 @@ def plot_coverage(
     histograms of the points (blue), of the evaluation velocities (green) and of the baseline (grey). The tensors may
     live on any device: they are copied to the CPU for plotting.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib import colormaps
+    from matplotlib.figure import Figure
 
     end = points.float().cpu()
     eval_tasks, skills, baseline = (None if t is None else t.cpu() for t in (eval_tasks, skills, baseline))
-    fig, ax = plt.subplots(figsize=(6, 5))
+    fig = Figure(figsize=(6, 5))
+    ax = fig.subplots()
     if end.shape[-1] == 2:
         if baseline is not None:
             ax.scatter(baseline[:, 0], baseline[:, 1], s=6, c="0.7", label=baseline_label)
         if skills is not None:
             num_skills = int(skills.max()) + 1
-            colors = plt.get_cmap("hsv")(torch.linspace(0, 1, num_skills + 1)[:-1].numpy())
+            colors = colormaps["hsv"](torch.linspace(0, 1, num_skills + 1)[:-1].numpy())
             ax.scatter(end[:, 0], end[:, 1], s=8, c=colors[skills.numpy()], alpha=0.6)
             centroids = skill_centroids(end, skills, num_skills)
             ax.scatter(centroids[:, 0], centroids[:, 1], s=40, c=colors, edgecolors="k", label=f"{label} centroids")

@@ -1,8 +1,8 @@
 """Benchmark figures: adaptation curves (return vs adaptation step) and the meta-training ablation.
 
 Both take already-aggregated curves, ``{panel: {method: Curve}}``, so they can be checked without running anything;
-:func:`umrl.metatest.results.curves_from_rows` builds them from the tidy results table. Figures are written as PNG with
-the non-interactive Agg backend.
+:func:`umrl.metatest.results.curves_from_rows` builds them from the tidy results table. Figures are written as PNG
+through :class:`matplotlib.figure.Figure`, without pyplot, so matplotlib's backend is left as the caller set it.
 """
 from __future__ import annotations
 
@@ -11,12 +11,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-import matplotlib
 import matplotlib.ticker
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
 
 from umrl.runtime import save_figure
 
@@ -46,7 +43,8 @@ def _panels(curves: Mapping[str, Mapping[str, Curve]], path: str | os.PathLike, 
             title: str, marker: str | None, styles: Mapping[str, Mapping] | None) -> Path:
     if not curves:
         raise ValueError("nothing to plot: no curves were given.")
-    fig, axes = plt.subplots(1, len(curves), figsize=(5.0 * len(curves), 4.0), squeeze=False)
+    fig = Figure(figsize=(5.0 * len(curves), 4.0))
+    axes = fig.subplots(1, len(curves), squeeze=False)
     for ax, (panel, methods) in zip(axes[0], curves.items()):
         for method, curve in methods.items():
             style = dict((styles or {}).get(method) or {"color": METHOD_COLORS.get(method)})

@@ -6,12 +6,12 @@ https://arxiv.org/abs/1806.04640) keeps D as a task proposal: r_z(s) = log D(z|s
 """
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import CudaGraphModule, TensorDictModule, TensorDictModuleBase
+from tensordict.nn import CudaGraphModule, TensorDictModule, TensorDictModuleBase, TensorDictParams
 from tensordict.utils import NestedKey, unravel_key
 from torchrl._utils import compile_with_warmup
 from torchrl.data import TensorSpec
@@ -56,7 +56,8 @@ class DIAYNLoss(LossModule):
     ``pseudo_reward`` (mean relabelled reward).
 
     The discount is set as in TorchRL: ``loss.make_value_estimator(gamma=0.99)`` (TD(0), gamma 0.99 by default).
-    Target Q-networks are updated with ``SoftUpdate(loss.sac_loss, tau=0.01)``.
+    Target Q-networks are updated with ``SoftUpdate(loss, tau=0.01)``, which updates the same targets as
+    ``SoftUpdate(loss.sac_loss, tau=0.01)``.
 
     Examples:
         >>> import torch
@@ -146,6 +147,8 @@ class DIAYNLoss(LossModule):
         )
         # SACLoss registers its target-entropy buffer lazily; materialise it so state dicts round-trip.
         _ = self.sac_loss.target_entropy
+        # one record of which networks have a target updater, so an updater built on either loss silences both
+        self._has_update_associated = self.sac_loss._has_update_associated
         self.discriminator = discriminator
         self._forward_value_estimator_keys()
 
@@ -161,6 +164,23 @@ class DIAYNLoss(LossModule):
         """Sets SAC's value estimator (e.g. ``make_value_estimator(gamma=0.99)``)."""
         self.sac_loss.make_value_estimator(value_type, **hyperparams)
         return self
+
+    @property
+    def qvalue_network_params(self) -> TensorDictParams:
+        """SAC's Q-network parameters, the source of :attr:`target_qvalue_network_params`."""
+        return self.sac_loss.qvalue_network_params
+
+    @property
+    def target_qvalue_network_params(self) -> TensorDictParams:
+        """SAC's target Q-network parameters (held by :attr:`sac_loss`)."""
+        return self.sac_loss.target_qvalue_network_params
+
+    def named_children(self) -> Iterator[tuple[str, torch.nn.Module]]:
+        """The submodules, then SAC's target Q-parameters as ``target_qvalue_network_params``: the name TorchRL's
+        target updaters (:class:`~torchrl.objectives.SoftUpdate`) look for among a loss's children. ``state_dict``
+        and ``named_modules`` keep them under ``sac_loss`` only."""
+        yield from super().named_children()
+        yield "target_qvalue_network_params", self.sac_loss.get_submodule("target_qvalue_network_params")
 
     @property
     def in_keys(self) -> list[NestedKey]:

@@ -7,7 +7,6 @@ scalars :class:`umrl.optim.trpo.TRPOStep`'s closure returns.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
 
 from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
@@ -71,10 +70,10 @@ class ImportanceSamplingLoss(LossModule):
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
     default_value_estimator = ValueEstimators.GAE
-    out_keys: ClassVar[list[str]] = ["loss_objective", "trust_region_kl", "kl", "ratio_max"]
 
     def __init__(self, actor_network: ProbabilisticActor):
         super().__init__()
+        self._out_keys = ["loss_objective", "trust_region_kl", "kl", "ratio_max"]
         self.actor_network = actor_network
         self.functional_policy = FunctionalPolicy(actor_network)
 
@@ -83,6 +82,15 @@ class ImportanceSamplingLoss(LossModule):
         keys = self.tensor_keys
         return [*self.functional_policy.net.in_keys, keys.action, keys.action_log_prob, keys.loc, keys.scale,
                 keys.advantage, keys.mask]
+
+    @property
+    def out_keys(self) -> list[NestedKey]:
+        """This loss's output keys (its own list: setting or editing it leaves other instances alone)."""
+        return self._out_keys
+
+    @out_keys.setter
+    def out_keys(self, values: list[NestedKey]) -> None:
+        self._out_keys = list(values)
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         if self._value_estimator is not None:

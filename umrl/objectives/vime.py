@@ -4,12 +4,12 @@ of transitions. The checkpoints of ``recipes/vime.py`` are read by :mod:`umrl.ch
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.objectives.common import LossModule
+from torchrl.objectives.value import ValueEstimatorBase
 
 from umrl.modules.bnn import BayesianDynamics
 
@@ -73,18 +73,51 @@ class VIMELoss(LossModule):
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
-    out_keys: ClassVar[list[str]] = ["loss_dynamics", "kl_prior", "log_likelihood", "elbo"]
 
     def __init__(self, dynamics: BayesianDynamics, *, dataset_size: int, num_samples: int = 10):
         super().__init__()
         if dataset_size < 1 or num_samples < 1:
             raise ValueError(f"dataset_size and num_samples must be positive, got {dataset_size} and {num_samples}.")
+        self._out_keys = ["loss_dynamics", "kl_prior", "log_likelihood", "elbo"]
         self.dynamics = dynamics
         self.dataset_size = int(dataset_size)
         self.num_samples = int(num_samples)
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
+
+    def make_value_estimator(self, value_type=None, **hyperparams) -> VIMELoss:
+        """Set :attr:`value_estimator` and return the loss.
+
+        The dynamics ELBO needs no value estimate, so this loss's default (``value_type`` None, its
+        ``default_value_estimator``) is no estimator: :attr:`value_estimator` is None. As in TorchRL's
+        :meth:`~torchrl.objectives.LossModule.make_value_estimator`, a
+        :class:`~torchrl.objectives.value.ValueEstimatorBase` instance is attached as given and a subclass is built
+        with ``hyperparams``. A :class:`~torchrl.objectives.utils.ValueEstimators` member or any other value, or
+        hyperparameters for the default, raise ``ValueError``.
+        """
+        if value_type is None:
+            hyperparams.pop("device", None)  # TorchRL's default construction passes it
+            if hyperparams:
+                raise ValueError(f"hyperparams: got {sorted(hyperparams)}; VIMELoss's default is no value estimator, "
+                                 "which takes none.")
+            self._value_estimator = None
+            self.value_type = None
+            return self
+        if isinstance(value_type, ValueEstimatorBase) or (
+                isinstance(value_type, type) and issubclass(value_type, ValueEstimatorBase)):
+            return super().make_value_estimator(value_type, **hyperparams)
+        raise ValueError(f"value_type: got {value_type!r}; expected None (VIMELoss uses no value estimator) or a "
+                         "torchrl ValueEstimatorBase instance or subclass.")
+
+    @property
+    def out_keys(self) -> list[NestedKey]:
+        """This loss's output keys (its own list: setting or editing it leaves other instances alone)."""
+        return self._out_keys
+
+    @out_keys.setter
+    def out_keys(self, values: list[NestedKey]) -> None:
+        self._out_keys = list(values)
 
     @property
     def in_keys(self) -> list[NestedKey]:

@@ -1,4 +1,5 @@
-"""Figures of the tabular analysis (matplotlib, Agg backend chosen on first use, not on import)."""
+"""Figures of the tabular analysis, drawn on :class:`matplotlib.figure.Figure` without pyplot (matplotlib's backend is
+left as the caller set it; matplotlib is imported on first use, not on import)."""
 from __future__ import annotations
 
 import math
@@ -14,16 +15,14 @@ from umrl.validation import InvalidValue
 def plot_grid_marginals(cmp: DeterministicCMP, rows: list[Evaluation], path: str | Path) -> Path:
     """One panel per row: its exploration marginal ``[S]`` drawn on the grid (``cmp.shape``), unreachable cells hatched,
     titled with the worst-case regret."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     if cmp.shape is None:
         raise InvalidValue("cmp", cmp.name, "a grid (a CMP with a shape)")
     columns = min(4, len(rows))
     lines = math.ceil(len(rows) / columns)
-    fig, axes = plt.subplots(lines, columns, figsize=(3 * columns, 3 * lines), squeeze=False)
+    fig = Figure(figsize=(3 * columns, 3 * lines))
+    axes = fig.subplots(lines, columns, squeeze=False)
     unreachable = (~reachable_at(cmp)).reshape(cmp.shape).numpy()
     top = max(float(row.marginal.max()) for row in rows)
     for ax, row in zip(axes.flat, rows):
@@ -47,14 +46,12 @@ def plot_regret_against_latents(cmp: DeterministicCMP, latents: list[int], curve
     """The ``"... worst-case"`` curves of :func:`~umrl.theory.evaluation.regret_against_latents` (learners meta-trained
     on each proposal) against ``|Z|`` (infinite values drawn as crosses at the top), and the MI the ascent reached
     against its maximum."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
     from matplotlib.ticker import ScalarFormatter
 
     reachable = int(reachable_at(cmp).sum())
-    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4))
+    fig = Figure(figsize=(10, 4))
+    left, right = fig.subplots(1, 2)
     regrets = {key: torch.tensor(values) for key, values in curves.items() if key.endswith("worst-case")}
     finite = [float(v) for values in regrets.values() for v in values if v.isfinite()]
     ceiling = 1.5 * max(finite + [reachable])
@@ -82,11 +79,8 @@ def plot_regret_against_latents(cmp: DeterministicCMP, latents: list[int], curve
 
 
 def _save(fig, path: str | Path) -> Path:
-    """Write ``fig`` as a small PNG at ``path`` (parent folders created) and close it."""
-    import matplotlib.pyplot as plt
-
+    """Write ``fig`` as a small PNG at ``path`` (parent folders created)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=90)
-    plt.close(fig)
     return path
