@@ -1,5 +1,8 @@
 """Recipe runtime: checkpoints, loggers, seeding, NaN guard."""
 import os
+import re
+import signal
+from contextlib import contextmanager
 
 import pytest
 import torch
@@ -115,6 +118,80 @@ def test_stale_tmp_files_are_removed_and_config_is_written_atomically(tmp_path):
     assert path.name == "step_1.pt" and checkpointer.latest().name == "step_1.pt"
     assert "seed: 0" in (tmp_path / "config.yaml").read_text()
 
+
+
+@contextmanager
+def _within(seconds):
+    """Fail instead of hanging: a blocked ``open`` of a FIFO is interrupted by the alarm."""
+    def expire(signum, frame):
+        raise TimeoutError(f"still blocked after {seconds} s")
+
+    previous = signal.signal(signal.SIGALRM, expire)
+    signal.alarm(seconds)
+    try:
+        yield
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+
+
+def test_only_files_named_exactly_step_n_pt_are_checkpoints_and_others_are_never_pruned(tmp_path):
+    for name in ("backup_step_100.pt", "best_step_1200.pt", "step_100.pt.bak", "step_1e3.pt"):
+        (tmp_path / name).write_bytes(b"kept by the user")
+    checkpointer = Checkpointer(tmp_path)
+    checkpointer.save({"x": 1}, 3)
+    assert checkpointer.latest().name == "step_3.pt" and resolve_checkpoint(tmp_path).name == "step_3.pt"
+    checkpointer.save({"x": 2}, 5)  # keep_all=False prunes step_3.pt, and nothing else
+    assert [p.name for p in checkpointer.all()] == ["step_5.pt"]
+    for name in ("backup_step_100.pt", "best_step_1200.pt", "step_100.pt.bak", "step_1e3.pt"):
+        assert (tmp_path / name).read_bytes() == b"kept by the user"
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+def test_special_files_named_like_checkpoints_are_never_listed_read_or_removed(tmp_path):
+    checkpointer = Checkpointer(tmp_path)
+    real = checkpointer.save({"x": 5}, 5)
+    os.mkfifo(tmp_path / "step_9.pt")  # reading it would block forever
+    (tmp_path / "step_7.pt").mkdir()
+    (tmp_path / "step_7.pt" / "notes").write_text("a folder")
+    os.symlink("/dev/zero", tmp_path / "step_8.pt")  # reading it would never end
+    assert checkpointer.all() == [real] and checkpointer.latest() == real
+    with _within(10):
+        assert resolve_checkpoint(tmp_path) == real
+        assert checkpointer.load()["x"] == 5
+        assert Checkpointer(tmp_path).load_latest_valid() == (real, {"x": 5})
+        checkpointer.save({"x": 6}, 6)  # prunes step_5.pt only
+    assert [p.name for p in checkpointer.all()] == ["step_6.pt"]
+    assert (tmp_path / "step_9.pt").exists() and (tmp_path / "step_7.pt" / "notes").read_text() == "a folder"
+    assert os.readlink(tmp_path / "step_8.pt") == "/dev/zero"
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+def test_resolving_a_special_file_given_explicitly_fails_before_opening_it(tmp_path):
+    real = Checkpointer(tmp_path).save({"x": 5}, 5)
+    os.mkfifo(tmp_path / "step_9.pt")
+    (tmp_path / "step_7.pt").mkdir()
+    os.symlink("/dev/zero", tmp_path / "step_8.pt")
+    with _within(10):
+        for name, kind in (("step_9.pt", "a FIFO"), ("step_7.pt", "a folder"), ("step_8.pt", "a character device")):
+            message = f"{tmp_path / name} is not a regular checkpoint file ({kind})"
+            with pytest.raises(CheckpointError, match=re.escape(message)):
+                resolve_checkpoint(tmp_path / name)
+    os.symlink(real, tmp_path / "chosen.pt")  # a symlink to a regular file, named by the user, is followed
+    assert resolve_checkpoint(tmp_path / "chosen.pt") == tmp_path / "chosen.pt"
+
+
+def test_stale_tmp_cleanup_removes_only_the_files_save_writes(tmp_path):
+    Checkpointer(tmp_path).save({"x": 1}, 1, config={"seed": 0})
+    (tmp_path / "step_2.pt.tmp").write_bytes(b"half a save")
+    (tmp_path / "config.yaml.tmp").write_text("half")
+    (tmp_path / "notes.tmp").write_text("the user's")
+    (tmp_path / "step_3.pt.tmp").mkdir()
+    (tmp_path / "elsewhere").write_text("a target")
+    os.symlink(tmp_path / "elsewhere", tmp_path / "step_4.pt.tmp")
+    Checkpointer(tmp_path).save({"x": 5}, 5)
+    assert sorted(p.name for p in tmp_path.glob("*.tmp")) == ["notes.tmp", "step_3.pt.tmp", "step_4.pt.tmp"]
+    assert (tmp_path / "step_3.pt.tmp").is_dir() and (tmp_path / "step_4.pt.tmp").read_text() == "a target"
 
 def test_replay_buffer_state_keeps_only_filled_rows_and_round_trips_through_wraps():
     from tensordict import TensorDict

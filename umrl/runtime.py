@@ -12,6 +12,7 @@ import math
 import os
 import random
 import re
+import stat
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
@@ -271,16 +272,22 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> None:
 class Checkpointer:
     """Saves ``state`` dicts as ``<directory>/step_<N>.pt`` with the resolved config in ``<directory>/config.yaml``.
 
-    Every file is written atomically (a ``.tmp`` then ``os.replace``). ``*.tmp`` files a killed save left behind are
-    removed by the writer: at its first :meth:`save` or :meth:`load_latest_valid` (a resume). Read-only lookups
-    (:meth:`latest`, :func:`resolve_checkpoint`, loaders) never touch them: another run may be writing there.
+    Every file is written atomically (a ``.tmp`` then ``os.replace``). The temporary files a killed save left behind
+    (``step_<N>.pt.tmp``, ``config.yaml.tmp``) are removed by the writer: at its first :meth:`save` or
+    :meth:`load_latest_valid` (a resume). Read-only lookups (:meth:`latest`, :func:`resolve_checkpoint`, loaders)
+    never touch them: another run may be writing there.
+
+    A checkpoint is exactly what :meth:`save` writes: an entry whose whole name is ``step_<N>.pt`` and which is a
+    regular file, not a symlink (checked with ``os.lstat``, without opening it). Anything else in the folder
+    (``best_step_3.pt``, a FIFO, a folder or a symlink named ``step_3.pt``) is never listed, read or deleted.
 
     Args:
         directory: where checkpoints go (created on first save).
         keep_all: keep every checkpoint (meta-training ablations evaluate them all); otherwise only the newest.
     """
 
-    _pattern = re.compile(r"step_(\d+)\.pt$")
+    _pattern = re.compile(r"step_([0-9]+)\.pt")
+    _tmp_pattern = re.compile(r"step_[0-9]+\.pt\.tmp|config\.yaml\.tmp")
 
     def __init__(self, directory: str | os.PathLike, keep_all: bool = False):
         self.directory = Path(directory)
@@ -288,17 +295,20 @@ class Checkpointer:
         self._stale_removed = False
 
     def _remove_stale_tmp(self) -> None:
-        """Once per writer: delete the ``*.tmp`` files a killed save left in :attr:`directory`."""
+        """Once per writer: delete the temporary files a killed save left in :attr:`directory` (regular files named
+        as :meth:`save` names them; other ``*.tmp`` entries are not umrl's and stay)."""
         if not self._stale_removed and self.directory.is_dir():
-            for stale in self.directory.glob("*.tmp"):
-                stale.unlink()
+            for stale in self.directory.iterdir():
+                if self._tmp_pattern.fullmatch(stale.name) and _is_regular_file(stale):
+                    stale.unlink()
         self._stale_removed = True
 
     def all(self) -> list[Path]:
-        """Every checkpoint on disk, oldest step first."""
+        """Every checkpoint on disk, oldest step first: regular files (not symlinks) named exactly ``step_<N>.pt``."""
         if not self.directory.is_dir():
             return []
-        found = [(int(m.group(1)), p) for p in self.directory.iterdir() if (m := self._pattern.search(p.name))]
+        found = [(int(m.group(1)), p) for p in self.directory.iterdir()
+                 if (m := self._pattern.fullmatch(p.name)) and _is_regular_file(p)]
         return [p for _, p in sorted(found)]
 
     def latest(self) -> Path | None:
@@ -357,15 +367,45 @@ class Checkpointer:
         raise CheckpointError("no readable checkpoint in " f"{self.directory}:\n" + "\n".join(errors))
 
 
+def _is_regular_file(path: Path) -> bool:
+    """Whether ``path`` itself is a regular file (a symlink is not), judged by ``os.lstat``: nothing is opened."""
+    try:
+        return stat.S_ISREG(os.lstat(path).st_mode)
+    except OSError:  # gone meanwhile, or unreadable metadata
+        return False
+
+
 def resolve_checkpoint(path: str | os.PathLike) -> Path:
     """``path`` if it is a checkpoint file, else the latest ``step_*.pt`` inside the directory ``path`` (or its
-    ``checkpoints/`` subfolder). Raises ``FileNotFoundError`` saying what was looked for."""
+    ``checkpoints/`` subfolder). Raises ``FileNotFoundError`` saying what was looked for, and
+    :class:`CheckpointError`, before opening anything, for a ``path`` that is neither a regular file (a symlink to
+    one is followed) nor a folder, or is a folder named like a checkpoint.
+
+    >>> resolve_checkpoint("/dev/null")  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    umrl.checkpoint_file.CheckpointError: /dev/null is not a regular checkpoint file (a character device); ...
+    """
     path = Path(path)
-    if path.is_file():
+    try:
+        mode = os.stat(path).st_mode  # follows a symlink the user named, opens nothing
+    except OSError:
+        mode = None
+    if mode is not None and stat.S_ISREG(mode):
         return path
+    if mode is not None and (not stat.S_ISDIR(mode) or Checkpointer._pattern.fullmatch(path.name)):
+        raise CheckpointError(f"{path} is not a regular checkpoint file ({_file_kind(mode)}); "
+                              "give a step_<N>.pt file or a run folder.")
     for directory in (path, path / "checkpoints"):
         latest = Checkpointer(directory).latest()
         if latest is not None:
             return latest
     raise FileNotFoundError(f"no checkpoint file at {path} (looked for step_*.pt in it and in {path / 'checkpoints'}).")
+
+
+def _file_kind(mode: int) -> str:
+    """What kind of file ``mode`` (an ``os.stat`` mode) is, in words."""
+    kinds = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
+             (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+    return next((name for test, name in kinds if test(mode)), "not a regular file")
 
