@@ -133,8 +133,8 @@ class MAMLLoss(LossModule):
         task_loop: bool | None = None,
     ) -> None:
         super().__init__()
-        self._out_keys = ["loss_objective", "trust_region_kl", "kl", "inner_loss", "return_pre", "return_post",
-                          "ratio_max"]
+        self.out_keys = [  # an instance list: select_out_keys on one loss leaves the others alone
+            "loss_objective", "trust_region_kl", "kl", "inner_loss", "return_pre", "return_post", "ratio_max"]
         inner_lr = check_positive("inner_lr", inner_lr)
         num_inner_steps = check_int("num_inner_steps", num_inner_steps, min=0)
         self.policy = policy
@@ -164,15 +164,6 @@ class MAMLLoss(LossModule):
         query_only = [keys.action_log_prob, keys.loc, keys.scale]
         return ([unravel_key((keys.support, k)) for k in shared]
                 + [unravel_key((keys.query, k)) for k in [*shared, *query_only]])
-
-    @property
-    def out_keys(self) -> list[NestedKey]:
-        """This loss's output keys (its own list: setting or editing it leaves other instances alone)."""
-        return self._out_keys
-
-    @out_keys.setter
-    def out_keys(self, values: list[NestedKey]) -> None:
-        self._out_keys = list(values)
 
     def pack(self, support: TensorDictBase, query: TensorDictBase,
              adapted: TensorDictBase | None = None) -> TensorDictBase:

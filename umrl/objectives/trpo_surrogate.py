@@ -73,7 +73,8 @@ class ImportanceSamplingLoss(LossModule):
 
     def __init__(self, actor_network: ProbabilisticActor):
         super().__init__()
-        self._out_keys = ["loss_objective", "trust_region_kl", "kl", "ratio_max"]
+        self.out_keys = [  # an instance list: select_out_keys on one loss leaves the others alone
+            "loss_objective", "trust_region_kl", "kl", "ratio_max"]
         self.actor_network = actor_network
         self.functional_policy = FunctionalPolicy(actor_network)
 
@@ -82,15 +83,6 @@ class ImportanceSamplingLoss(LossModule):
         keys = self.tensor_keys
         return [*self.functional_policy.net.in_keys, keys.action, keys.action_log_prob, keys.loc, keys.scale,
                 keys.advantage, keys.mask]
-
-    @property
-    def out_keys(self) -> list[NestedKey]:
-        """This loss's output keys (its own list: setting or editing it leaves other instances alone)."""
-        return self._out_keys
-
-    @out_keys.setter
-    def out_keys(self, values: list[NestedKey]) -> None:
-        self._out_keys = list(values)
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         if self._value_estimator is not None:

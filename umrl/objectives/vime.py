@@ -78,7 +78,8 @@ class VIMELoss(LossModule):
         super().__init__()
         if dataset_size < 1 or num_samples < 1:
             raise ValueError(f"dataset_size and num_samples must be positive, got {dataset_size} and {num_samples}.")
-        self._out_keys = ["loss_dynamics", "kl_prior", "log_likelihood", "elbo"]
+        self.out_keys = [  # an instance list: select_out_keys on one loss leaves the others alone
+            "loss_dynamics", "kl_prior", "log_likelihood", "elbo"]
         self.dynamics = dynamics
         self.dataset_size = int(dataset_size)
         self.num_samples = int(num_samples)
@@ -109,15 +110,6 @@ class VIMELoss(LossModule):
             return super().make_value_estimator(value_type, **hyperparams)
         raise ValueError(f"value_type: got {value_type!r}; expected None (VIMELoss uses no value estimator) or a "
                          "torchrl ValueEstimatorBase instance or subclass.")
-
-    @property
-    def out_keys(self) -> list[NestedKey]:
-        """This loss's output keys (its own list: setting or editing it leaves other instances alone)."""
-        return self._out_keys
-
-    @out_keys.setter
-    def out_keys(self, values: list[NestedKey]) -> None:
-        self._out_keys = list(values)
 
     @property
     def in_keys(self) -> list[NestedKey]:
