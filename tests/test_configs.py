@@ -156,6 +156,9 @@ NO_GPU = pytest.mark.skipif(torch.cuda.is_available(), reason="device=cuda is va
     ("vime", ["dynamics.holdout_fraction=1"], "dynamics.holdout_fraction: got 1; expected a finite number in (0, 1)"),
     ("diayn", ["env.num_envs=16", "collector.frames_per_batch=1601"],
      "collector.frames_per_batch: got 1601; expected a multiple of env.num_envs (16)"),
+    ("diayn", ["env.name=half_cheetah", "env.backend=gym", "seeds=[0,1]"],
+     ("env.backend: got 'gym' (seeds=[0, 1] share gymnasium's vector env); expected default or batched with several "
+      "seeds")),
     ("diayn", ["seeds=[0,1,0]"], ("seeds: got [0, 1, 0] (repeated entries); expected null or a non-empty list of "
                                   "distinct integers in [0, 9223372036854775807]")),
     ("suite", ["methods=[scratch,sac]"], ("methods[1]: got 'sac'; expected one of 'uml_diayn', 'uml_random', "

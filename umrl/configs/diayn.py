@@ -14,6 +14,7 @@ from umrl.configs.common import (
 from umrl.configs.memory import Allocation, allocation_errors, step_bytes
 from umrl.configs.validate import boolean, group, int_list, integer, number
 from umrl.envs import get_env_spec
+from umrl.envs.mujoco import MUJOCO_ENV_NAMES
 from umrl.validation import SEED_MAX, InvalidValue
 
 
@@ -107,7 +108,7 @@ class DIAYNConfig(RunConfig):
 
     @staticmethod
     def cross_check(cfg: dict) -> list[str]:
-        """The collector's batch holds whole env steps; the replay batch fits in the buffer; the discriminator's input
+        """Several seeds run on the batched MuJoCo env (not gymnasium's); the collector's batch holds whole env steps; the replay batch fits in the buffer; the discriminator's input
         dims exist in the env's observation; CUDA graphs and torch.compile run on a CUDA device (``device`` is
         resolved here); the replay buffer and the collector's batch fit in its memory (:func:`memory_errors`)."""
         errors = cudagraphs_errors(cfg["optim"]["cudagraphs"], cfg["device"], "optim.cudagraphs")
@@ -117,6 +118,11 @@ class DIAYNConfig(RunConfig):
         if dims is not None and max(dims) >= obs_dim:
             errors.append(InvalidValue("network.discriminator_input_dims", dims,
                                        f"null or distinct integers < {obs_dim} ({cfg['env']['name']}'s obs_dim)").message())
+        seeds, env = resolve_seeds(cfg), cfg["env"]
+        if len(seeds) > 1 and env["backend"] == "gym" and env["name"] in MUJOCO_ENV_NAMES:
+            errors.append(InvalidValue("env.backend", "gym", "default or batched with several seeds (the batched MuJoCo "
+                                       "env gives each seed its own reset noise)",
+                                       note=f"seeds={seeds} share gymnasium's vector env").message())
         fpb, num_envs = cfg["collector"]["frames_per_batch"], cfg["env"]["num_envs"]
         if fpb % num_envs:
             errors.append(InvalidValue("collector.frames_per_batch", fpb,

@@ -42,7 +42,6 @@ import torch
 import tqdm
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
-from torchrl.envs import TransformedEnv
 from torchrl.objectives import SoftUpdate
 
 from umrl.checkpoints.diayn import (
@@ -99,15 +98,11 @@ def make_skill_env(cfg: DictConfig, num_envs: int, num_skills: int, seed: int, g
     return env
 
 
-def seed_reset_noise(env, seeds: list[int], backend: str) -> None:
-    """Give each seed's group of copies of ``env`` its own reset-noise stream (MuJoCo's batched env: ``seed_copies``);
-    point_nav starts deterministically; gymnasium's vector env (``env.backend=gym``) with several seeds is refused."""
-    base = env.base_env
-    if hasattr(base, "seed_copies"):
-        base.seed_copies(seeds)
-    elif len(seeds) > 1 and backend == "gym" and isinstance(base, TransformedEnv):
-        raise ValueError(f"env.backend={backend} cannot give each of {len(seeds)} seeds its own reset noise; "
-                         "use env.backend=default (the batched MuJoCo env) for several seeds.")
+def seed_reset_noise(env, seeds: list[int]) -> None:
+    """Give each seed's group of copies of ``env`` its own reset-noise stream (MuJoCo's batched env: ``seed_copies``;
+    point_nav starts deterministically, and the config refuses gymnasium's vector env with several seeds)."""
+    if hasattr(env.base_env, "seed_copies"):
+        env.base_env.seed_copies(seeds)
 
 
 def evaluate(cfg, env, actor, discriminator, num_skills, step, figure_path, logger, baseline, seed: int,
@@ -209,7 +204,7 @@ class DIAYNTrainer:
 
         # --- data ---------------------------------------------------------------------------------------
         self.env = make_skill_env(cfg, S * n, num_skills, seeds[0], self.generators)
-        seed_reset_noise(self.env, seeds, cfg.env.backend)
+        seed_reset_noise(self.env, seeds)
         self.eval_env = make_skill_env(cfg, num_skills * cfg.eval.episodes_per_skill, num_skills, seeds[0] + 10_000)
         self.replay = SeedReplay(cfg.replay_buffer.size, batch_size=cfg.replay_buffer.batch_size,
                                  generators=self.generators, act_dim=act_dim, device=device)
