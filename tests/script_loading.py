@@ -1,7 +1,10 @@
 """Helpers for tests of the Hydra scripts in benchmarks/ and recipes/: import a script, compose its config (the
-trainers' configs compose from the library: ``from umrl.trainers import compose``)."""
+trainers' configs compose from the library: ``from umrl.trainers import compose``), kill a running one."""
 import importlib.util
+import signal
+import subprocess
 import sys
+import time
 from pathlib import Path
 
 from hydra import compose
@@ -28,3 +31,19 @@ def compose_config(directory: str, name: str, overrides) -> DictConfig:
     """Compose Hydra config ``name`` from ``REPO/directory`` with ``overrides``."""
     with config_dir(REPO / directory):
         return compose(name, overrides=list(overrides))
+
+
+def sigkill_after(script_args: list[str], checkpoint: Path, timeout: float = 120.0) -> None:
+    """Run ``python <script_args>`` from ``REPO``, SIGKILL it as soon as ``checkpoint`` exists, and check that it was
+    killed (not finished) and wrote ``checkpoint`` in ``timeout`` seconds."""
+    proc = subprocess.Popen([sys.executable, *script_args], cwd=REPO, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + timeout
+        while not checkpoint.exists() and proc.poll() is None:
+            assert time.monotonic() < deadline, f"the script wrote no {checkpoint.name} within {timeout:.0f} s"
+            time.sleep(0.02)
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait()
+    assert proc.returncode == -signal.SIGKILL, "the run finished before it could be killed"

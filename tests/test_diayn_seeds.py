@@ -1,13 +1,8 @@
 """Several DIAYN seeds in one program: the fused update is SACLoss's, seeds stay independent, the reference schedule,
 the per-seed replay and random streams, exact resume."""
-import signal
-import subprocess
-import sys
-import time
-from pathlib import Path
-
 import pytest
 import torch
+from script_loading import sigkill_after
 from tensordict import TensorDict
 
 from umrl.checkpoints import load_diayn_checkpoint
@@ -24,7 +19,6 @@ from umrl.trainers.diayn import DIAYNTrainer, train
 from umrl.transforms.skill import SkillTransform
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
-REPO = Path(__file__).resolve().parents[1]
 K, OBS, ACT, B = 4, 3, 2, 32
 LOSSES = ("loss_actor", "loss_qvalue", "loss_alpha", "loss_discriminator")
 
@@ -265,19 +259,10 @@ def test_a_killed_run_of_two_seeds_resumes_to_the_uninterrupted_numbers(tmp_path
     overrides = ["env.name=half_cheetah", "seeds=[0,1]", "collector.total_frames=600", "checkpoint.every=40",
                  "eval.every=600"]
     killed = tmp_path / "killed"
-    command = [sys.executable, "recipes/diayn.py", "logger.backend=none", "progress=false", f"output_dir={killed}", "num_skills=3", "env.horizon=10",
+    command = ["recipes/diayn.py", "logger.backend=none", "progress=false", f"output_dir={killed}", "num_skills=3", "env.horizon=10",
                 "collector.init_random_frames=40", "network.hidden=[16,16]", "network.discriminator_hidden=[16]",
                 "replay_buffer.batch_size=16", "replay_buffer.size=1000", "eval.episodes_per_skill=2", *overrides]
-    proc = subprocess.Popen(command, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        deadline = time.monotonic() + 120
-        while not (killed / "checkpoints" / "step_80.pt").exists() and proc.poll() is None:
-            assert time.monotonic() < deadline, "the recipe wrote no second checkpoint within 120 s"
-            time.sleep(0.02)
-        proc.send_signal(signal.SIGKILL)
-    finally:
-        proc.wait()
-    assert proc.returncode == -signal.SIGKILL, "the run finished before it could be killed"
+    sigkill_after(command, killed / "checkpoints" / "step_80.pt")
     resumed = train(tiny(killed, "half_cheetah", *overrides, "resume=true"))
     whole = train(tiny(tmp_path / "whole", "half_cheetah", *overrides))
     a, b = read_checkpoint(whole["checkpoint"]), read_checkpoint(resumed["checkpoint"])

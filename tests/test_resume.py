@@ -4,15 +4,11 @@ tensor of the final checkpoint: networks, optimisers, replay buffers with their 
 resumes that would continue a different run are refused; an unreadable latest checkpoint falls back to the previous
 one."""
 import importlib
-import os
-import signal
-import subprocess
-import sys
-import time
 
 import numpy as np
 import pytest
 import torch
+from script_loading import sigkill_after
 from tensordict import TensorDictBase
 
 from umrl.configs import ConfigError
@@ -118,18 +114,7 @@ def test_sigkill_mid_iteration_then_resume_is_bit_identical(tmp_path):
     """A MAML run killed with SIGKILL while meta-training (after its 2nd checkpoint), resumed in-process."""
     overrides = ["logger.backend=none", "progress=false", "env.name=point_nav", *TINY["maml"], "iterations=6"]
     killed = tmp_path / "killed"
-    proc = subprocess.Popen([sys.executable, "recipes/maml.py", *overrides, f"output_dir={killed}"],
-                            cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        deadline = time.monotonic() + 120
-        while not (killed / "checkpoints" / "step_2.pt").exists() and proc.poll() is None:
-            assert time.monotonic() < deadline, "the recipe wrote no second checkpoint within 120 s"
-            time.sleep(0.02)
-        proc.send_signal(signal.SIGKILL)
-    finally:
-        proc.wait()
-    assert proc.returncode == -signal.SIGKILL, "the run finished before it could be killed"
+    sigkill_after(["recipes/maml.py", *overrides, f"output_dir={killed}"], killed / "checkpoints" / "step_2.pt")
     assert Checkpointer(killed / "checkpoints").latest().name != "step_6.pt"
 
     from umrl.trainers.maml import train
