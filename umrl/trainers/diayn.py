@@ -326,8 +326,8 @@ class DIAYNTrainer:
     @torch.no_grad()
     def _flush_episodes(self) -> None:
         """Score the interval's pending steps (batches of ``[T, S * n]``) by the current discriminators in one call
-        and keep the pseudo-returns ``[S, episodes]`` (NaN-padded) of the episodes that ended in them; unfinished
-        episodes carry over in :attr:`episode_return`."""
+        and keep the pseudo-returns of the episodes that ended in them (``[S, T * n]``, NaN where none ended);
+        unfinished episodes carry over in :attr:`episode_return`."""
         steps = self._interval["episodes"]
         if not steps:
             return
@@ -339,14 +339,16 @@ class DIAYNTrainer:
         skill = data["skill"].view(T, S, n, -1).permute(1, 0, 2, 3).reshape(S, T * n, -1)
         rewards = skill_reward(self.loss.discriminator_logits(observation), skill)
         rewards = rewards.view(S, T, n).permute(1, 0, 2).reshape(T, S * n)
-        done, finished = data["next", "done"].view(T, S * n), []
-        for t in range(T):
-            self.episode_return += rewards[t]
-            if done[t].any():
-                finished.append(torch.where(done[t], self.episode_return, torch.nan))
-                self.episode_return.masked_fill_(done[t], 0.0)
-        if finished:
-            self._interval["returns"].append(torch.stack(finished).view(-1, S, n).transpose(0, 1).reshape(S, -1))
+        done = data["next", "done"].view(T, S * n)
+        # running totals since the carried-over episode start; an episode ending at t returns its total minus the
+        # total at the previous end of the same copy (0 before the first)
+        total = torch.cat([torch.zeros_like(rewards[:1]), self.episode_return + rewards.cumsum(0)])  # [T + 1, C]
+        steps = torch.arange(1, T + 1, device=done.device).unsqueeze(-1)
+        last_end = torch.where(done, steps, 0).cummax(0).values  # [T, C]: row of total at the latest end up to t
+        previous_end = torch.cat([torch.zeros_like(last_end[:1]), last_end[:-1]])
+        returns = torch.where(done, total[1:] - total.gather(0, previous_end), torch.nan)  # [T, C]
+        self.episode_return = total[-1] - total.gather(0, last_end[-1:]).squeeze(0)
+        self._interval["returns"].append(returns.view(T, S, n).transpose(0, 1).reshape(S, T * n))
 
     def step(self) -> dict[str, float]:
         """One batch: ``collector.frames_per_batch`` env steps per seed into the replay, the updates they earn, an
