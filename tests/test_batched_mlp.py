@@ -10,8 +10,8 @@ from umrl.envs import get_task_family, make_task_env
 from umrl.modules.batched_mlp import BatchedGaussianMLP, ReLUMLPLinearization, declare_batched_layers
 from umrl.modules.policy import make_gaussian_policy
 from umrl.objectives.maml import MAMLLoss
-from umrl.objectives.maml_hvp import make_meta_hvp
 from umrl.objectives.policy_gradient import compute_advantages
+from umrl.optim.meta_hvp import AnalyticHVP, ExactHVP, GaussNewtonHVP, make_meta_hvp
 from umrl.optim.trpo import TRPOStep
 from umrl.rollout import FunctionalPolicy, collect
 
@@ -99,10 +99,11 @@ def test_batched_maml_step_matches_the_per_task_loop():
     results = {}
     for name, loss in losses.items():
         adapted = loss.adapt(support)
-        surrogate, kl = loss.objective_and_kl(support, query, phi=adapted)
+        out = loss(loss.pack(support, query, adapted))
+        surrogate, kl = out["loss_objective"], out["trust_region_kl"]
         grad = torch.autograd.grad(surrogate, leaves)
         results[name] = (adapted.detach(), surrogate.detach(), kl.detach(), torch.cat([g.reshape(-1) for g in grad]),
-                         loss.gauss_newton_hvp(support, query)(v))
+                         GaussNewtonHVP(loss).product(support, query)(v))
     (a_b, s_b, k_b, g_b, h_b), (a_l, s_l, k_l, g_l, h_l) = results["batched"], results["loop"]
     for key in a_b.keys(True, True):
         torch.testing.assert_close(a_b.get(key), a_l.get(key), rtol=1e-10, atol=1e-12)
@@ -183,16 +184,16 @@ def test_analytic_gauss_newton_hvp_equals_autograds(first_order, in_keys):
     """The hand-derived J^T F J product equals the autograd one and the exact KL Hessian through the inner step."""
     policy = _policy(in_keys, obs=OBS + (2 if len(in_keys) > 1 else 0))
     loss = MAMLLoss(policy, inner_lr=0.5, first_order=first_order)
-    assert loss.supports_analytic_hvp
+    assert AnalyticHVP.supports(loss)
     support, query = _batch(_policy(), seed=1), _batch(_policy(), seed=2)
     for td in (support, query):
         td["skill"] = torch.randn(T, N, H, 2, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
     with torch.no_grad():  # the query's recorded loc/scale from the adapted policy: the KL's minimum at θ
         query.update(loss.functional_policy.dist_params(loss.adapt(support), query).select("loc", "scale"))
     leaves = list(loss.params.values(True, True))
-    grad = torch.autograd.grad(loss.hvp_kl(support, query), leaves, create_graph=True)
+    grad = torch.autograd.grad(ExactHVP(loss).kl(support, query), leaves, create_graph=True)
     grad = torch.cat([x.reshape(-1) for x in grad])
-    analytic, autograd = loss.analytic_gauss_newton_hvp(support, query), loss.gauss_newton_hvp(support, query)
+    analytic, autograd = AnalyticHVP(loss).product(support, query), GaussNewtonHVP(loss).product(support, query)
     for seed in range(2):
         v = torch.randn(grad.numel(), generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
         exact = torch.cat([h.reshape(-1) for h in torch.autograd.grad(grad @ v, leaves, retain_graph=True)])
@@ -209,8 +210,8 @@ def test_analytic_gauss_newton_hvp_with_a_clamped_scale_and_a_subsample():
     support, query = _batch(policy, seed=1), _batch(policy, seed=2)
     v = torch.randn(sum(p.numel() for p in loss.params.values(True, True)), dtype=torch.float64,
                     generator=torch.Generator().manual_seed(0))
-    products = [hvp(support, query, fraction=0.5, generator=torch.Generator().manual_seed(9))(v)
-                for hvp in (loss.analytic_gauss_newton_hvp, loss.gauss_newton_hvp)]
+    products = [hvp(loss, fraction=0.5, generator=torch.Generator().manual_seed(9)).product(support, query)(v)
+                for hvp in (AnalyticHVP, GaussNewtonHVP)]
     torch.testing.assert_close(*products, rtol=1e-10, atol=1e-12)
 
 
@@ -218,17 +219,22 @@ def test_analytic_gauss_newton_hvp_refuses_what_it_cannot_differentiate():
     policy = _policy()
     support, query = _batch(policy, seed=1), _batch(policy, seed=2)
     with pytest.raises(ValueError, match="needs a ReLU MLP Gaussian policy"):
-        MAMLLoss(policy, inner_lr=0.5, task_loop=True).analytic_gauss_newton_hvp(support, query)
+        AnalyticHVP(MAMLLoss(policy, inner_lr=0.5, task_loop=True)).product(support, query)
     with pytest.raises(ValueError, match="num_inner_steps=1"):
-        MAMLLoss(policy, inner_lr=0.5, num_inner_steps=2).analytic_gauss_newton_hvp(support, query)
+        AnalyticHVP(MAMLLoss(policy, inner_lr=0.5, num_inner_steps=2)).product(support, query)
     tanh = make_gaussian_policy(OBS, ACT, hidden=(4,)).double()
     tanh.module[0].module[0][1] = nn.Tanh()
-    assert not MAMLLoss(tanh).supports_analytic_hvp
+    assert not AnalyticHVP.supports(MAMLLoss(tanh))
+
+
+def _objective_and_kl(loss, support, query, adapted=None):
+    out = loss(loss.pack(support, query, adapted))
+    return out["loss_objective"], out["trust_region_kl"]
 
 
 def _tiny_maml_step(device: str, hvp: str = "gauss_newton"):
     """Collect, adapt, collect post-update, one TRPO meta-step (subsampled Gauss-Newton HVP ``hvp``, a
-    :data:`~umrl.objectives.maml_hvp.META_HVPS` name): all on ``device``."""
+    :data:`~umrl.optim.meta_hvp.META_HVPS` name): all on ``device``."""
     torch.manual_seed(0)
     tasks = get_task_family("point_nav").sample(T, torch.Generator().manual_seed(0))
     env = make_task_env("point_nav", tasks.repeat_interleave(N, 0).to(device), horizon=H, device=device)
@@ -244,7 +250,7 @@ def _tiny_maml_step(device: str, hvp: str = "gauss_newton"):
     # On this 3-task, 5-step batch the quadratic KL model is loose: the first acceptable step lies 15-16 backtracks
     # down, on one side or the other of the default limit depending on the CPU's kernels.
     info = TRPOStep(loss.params, hvp=strategy, max_kl=0.05, max_backtracks=40)(
-        lambda: loss.objective_and_kl(support, query), initial=loss.objective_and_kl(support, query, phi=adapted),
+        lambda: _objective_and_kl(loss, support, query), initial=_objective_and_kl(loss, support, query, adapted),
         batch=loss.pack(support, query))
     tensors = [*support.values(True, True), *query.values(True, True), *adapted.values(True, True),
                *out.values(True, True), *policy.parameters()]

@@ -6,6 +6,8 @@ import warnings
 import pytest
 import torch
 from tensordict import TensorDict
+from torchrl.envs import RenameTransform
+from torchrl.modules import MLP, ValueOperator
 from torchrl.objectives import SoftUpdate
 from torchrl.objectives.utils import ValueEstimators
 from torchrl.objectives.value import TD0Estimator
@@ -15,8 +17,10 @@ from umrl.modules.discriminator import make_discriminator
 from umrl.modules.policy import make_gaussian_policy
 from umrl.modules.sac import make_skill_actor, make_skill_qvalue
 from umrl.objectives import DIAYNLoss, ImportanceSamplingLoss, MAMLLoss, VIMELoss
-from umrl.objectives.maml_hvp import META_HVPS, make_meta_hvp
-from umrl.optim import KLHessian, TRPOStep
+from umrl.objectives.stacked_diayn import StackedDIAYNLoss
+from umrl.optim import META_HVPS, KLHessian, TRPOStep, make_meta_hvp
+from umrl.proposals import make_proposal
+from umrl.rollout import collect
 
 T, N, H, OBS, ACT, K = 2, 3, 4, 2, 2, 4
 
@@ -207,9 +211,10 @@ def test_importance_sampling_loss_is_one_task_of_mamls_outer_surrogate():
     with torch.no_grad():
         batch["action_log_prob"] = batch["action_log_prob"] - 0.1  # a different collecting policy: ratio != 1
     maml = MAMLLoss(loss.policy, num_inner_steps=0)
-    surrogate, kl = maml.objective_and_kl(batch.unsqueeze(0), batch.unsqueeze(0))
+    meta = maml(maml.pack(batch.unsqueeze(0), batch.unsqueeze(0)))
     out = ImportanceSamplingLoss(loss.policy)(batch)
-    assert torch.equal(out["loss_objective"], surrogate) and torch.equal(out["trust_region_kl"], kl)
+    for key in ("loss_objective", "trust_region_kl"):
+        assert torch.equal(out[key], meta[key])
     assert set(out.keys()) == set(ImportanceSamplingLoss(loss.policy).out_keys)
 
 
@@ -232,3 +237,214 @@ def test_meta_hvp_strategies_drive_a_trpo_step(name):
     with pytest.raises(TypeError, match="hvp: got"):
         TRPOStep(loss.params, hvp="exact")
     assert repr(KLHessian()) == "KLHessian(closure KL)"
+
+
+# Every key of every loss renamed, from collection through the value estimator to a trained step: the renamed run
+# gives the default run's numbers bit for bit, and nothing reads a default name.
+
+def _renamed(td, names):
+    """``td`` with each entry named in ``names`` (default -> new, root or nested) moved to its new name."""
+    for old, new in names.items():
+        if old in td.keys(True):
+            td.rename_key_(old, new)
+    return td
+
+
+def _fields(loss_or_estimator):
+    return set(loss_or_estimator._AcceptedKeys.__dataclass_fields__)
+
+
+MAML_KEYS = {"support": "pre", "query": "post", "adapted": "phi", "action": "act", "action_log_prob": "act_lp",
+             "advantage": "adv", "loc": "mu", "scale": "sigma", "mask": "valid", "reward": "rew"}
+# the value estimator's own keys (the loss forwards those it shares: advantage, mask, reward)
+ESTIMATOR_KEYS = {"observation": "obs", "step_count": "t", "done": "end", "value_target": "ret", "value": "baseline"}
+# what collection writes, under the names above
+COLLECTED = {"observation": "obs", ("next", "observation"): ("next", "obs"), "step_count": "t",
+             ("next", "step_count"): ("next", "t"), "action": "act", "action_log_prob": "act_lp", "loc": "mu",
+             "scale": "sigma", "mask": "valid", ("next", "reward"): ("next", "rew"), ("next", "done"): ("next", "end")}
+
+
+def _collection(renamed):
+    """point_nav's oracle tasks, a policy reading ``"obs"`` (a RenameTransform on the env) or ``"observation"``, and
+    a ``collect(params) -> batch`` whose entries carry the renamed keys (``COLLECTED``) or the defaults."""
+    torch.manual_seed(0)
+    proposal = make_proposal("oracle", "point_nav", num_tasks=T, trajectories_per_task=N, horizon=H)
+    proposal.resample(torch.Generator().manual_seed(0))
+    env = proposal.env
+    if renamed:
+        env.append_transform(RenameTransform(["observation"], ["obs"]))
+    policy = make_gaussian_policy(OBS, ACT, hidden=(8,), seed=0, in_keys=["obs" if renamed else "observation"])
+
+    def collect_batch(params=None, *, with_mask=True):
+        td = collect(env, policy, num_tasks=T, horizon=H, params=params)
+        td = td if with_mask else td.exclude("mask")  # then the value estimator writes it
+        return _renamed(td, {k: v for k, v in COLLECTED.items() if k != "observation"}) if renamed else td
+
+    return policy, collect_batch
+
+
+def _maml_step(renamed, hvp):
+    policy, collect_batch = _collection(renamed)
+    loss = MAMLLoss(policy, inner_lr=0.5).make_value_estimator(gamma=0.9)
+    if renamed:
+        loss.set_keys(**MAML_KEYS)
+        loss.value_estimator.set_keys(**ESTIMATOR_KEYS)
+    support = loss.value_estimator(collect_batch(with_mask=False))
+    adapted = loss.adapt(support)
+    query = loss.value_estimator(collect_batch(adapted.detach()))
+    first = loss(loss.pack(support, query, adapted))
+    batch = loss.pack(support, query)
+
+    def closure():
+        out = loss(batch)
+        return out["loss_objective"], out["trust_region_kl"]
+
+    strategy = make_meta_hvp(hvp, loss, fraction=0.5 if hvp != "exact" else 1.0,
+                             generator=torch.Generator().manual_seed(0))
+    info = TRPOStep(loss.params, hvp=strategy, max_kl=0.05, max_backtracks=40)(
+        closure, batch=batch, initial=(first["loss_objective"], first["trust_region_kl"]))
+    return batch, first, info, [p.detach().clone() for p in policy.parameters()]
+
+
+@pytest.mark.parametrize("hvp", sorted(META_HVPS))
+def test_maml_with_every_key_renamed_collects_estimates_and_trains_as_with_the_defaults(hvp):
+    assert _fields(MAMLLoss) == set(MAML_KEYS)
+    loss = MAMLLoss(make_gaussian_policy(OBS, ACT, hidden=(8,))).make_value_estimator()
+    assert _fields(loss.value_estimator) == {"advantage", "mask", "reward"} | set(ESTIMATOR_KEYS)
+    batch, out, info, params = _maml_step(True, hvp)
+    default_batch, default_out, default_info, default_params = _maml_step(False, hvp)
+    assert set(batch.keys()) == {"pre", "post"}
+    defaults = {*COLLECTED, "advantage", "value_target", "state_value"}
+    for part in ("pre", "post"):
+        assert not defaults & set(batch[part].keys(True)), part
+        torch.testing.assert_close(batch[part, "adv"], default_batch["support" if part == "pre" else "query",
+                                                                      "advantage"], rtol=0, atol=0)
+    for key in out.keys(True, True):
+        assert torch.equal(out[key], default_out[key]), key
+    assert info["accepted"] == 1.0 and info["step_norm"] > 0
+    assert info["surrogate_after"] == default_info["surrogate_after"]
+    assert all(torch.equal(p, q) for p, q in zip(params, default_params))
+
+
+def test_renaming_the_mask_reaches_the_value_estimator_and_the_inner_step():
+    policy, collect_batch = _collection(False)
+    loss = MAMLLoss(policy).make_value_estimator()
+    loss.set_keys(mask="valid")
+    support = loss.value_estimator(collect_batch(with_mask=False))
+    assert "valid" in support.keys(True) and "mask" not in support.keys(True)
+    assert loss.adapt(support).batch_size == (T,)
+
+
+def _importance_sampling_step(renamed):
+    policy, collect_batch = _collection(renamed)
+    loss = ImportanceSamplingLoss(policy).make_value_estimator(gamma=0.9)
+    names = {k: MAML_KEYS[k] for k in _fields(ImportanceSamplingLoss)}
+    if renamed:
+        loss.set_keys(**names)
+        loss.value_estimator.set_keys(reward="rew", **ESTIMATOR_KEYS)
+    batch = loss.value_estimator(collect_batch()[0])  # one task's trajectories [N, H]
+    batch.set(names["action_log_prob"] if renamed else "action_log_prob",
+              batch.get(names["action_log_prob"] if renamed else "action_log_prob") - 0.1)
+
+    def closure():
+        out = loss(batch)
+        return out["loss_objective"], out["trust_region_kl"]
+
+    first = loss(batch)
+    info = TRPOStep(TensorDict.from_module(policy), max_kl=0.05, max_backtracks=40)(closure)
+    return first, info, [p.detach().clone() for p in policy.parameters()]
+
+
+def test_importance_sampling_loss_with_every_key_renamed_trains_as_with_the_defaults():
+    (out, info, params), (default_out, _, default_params) = _importance_sampling_step(True), \
+        _importance_sampling_step(False)
+    for key in out.keys(True, True):
+        assert torch.equal(out[key], default_out[key]), key
+    assert info["accepted"] == 1.0 and all(torch.equal(p, q) for p, q in zip(params, default_params))
+
+
+def _vime_step(renamed):
+    names = {"observation": "s", "action": "a", "next_observation": ("next", "s")}
+    torch.manual_seed(0)
+    bnn = BayesianDynamics(obs_dim=OBS, act_dim=ACT)
+    g = torch.Generator().manual_seed(0)
+    obs, act = torch.randn(8, OBS, generator=g), torch.randn(8, ACT, generator=g)
+    bnn.update_normalizer(obs, act, obs + act)
+    loss = VIMELoss(bnn, dataset_size=8)
+    batch = TensorDict({"observation": obs, "action": act, ("next", "observation"): obs + act}, [8])
+    if renamed:
+        assert _fields(loss) == set(names)
+        loss.set_keys(**names)
+        batch = _renamed(batch, {"observation": "s", "action": "a", ("next", "observation"): ("next", "s")})
+    return _sgd_step(loss, batch, ["loss_dynamics"])
+
+
+def _sgd_step(loss, batch, terms):
+    """``(out, parameters before, parameters after)`` of one SGD step on the sum of ``terms`` (random draws seeded)."""
+    before = [p.detach().clone() for p in loss.parameters()]
+    torch.manual_seed(1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # DIAYN's "no target network updater": none is needed for one step
+        out = loss(batch)
+    sum(out[k].sum() for k in terms).backward()
+    torch.optim.SGD(loss.parameters(), lr=0.1).step()
+    return out, before, [p.detach().clone() for p in loss.parameters()]
+
+
+DIAYN_KEYS = {"skill": "z", "discriminator_observation": "obs", "action": "act", "log_prob": "lp", "reward": "rew",
+              "done": "end", "terminated": "term", "state_action_value": "q", "priority": "err"}
+
+
+def _diayn_networks(keys):
+    """Actor, twin Q and discriminator reading ``keys`` (the Q-network's action input and value output too)."""
+    torch.manual_seed(0)
+    actor = make_skill_actor(OBS, K, ACT, hidden=(8,), observation_key=keys["discriminator_observation"],
+                             skill_key=keys["skill"])
+    net = MLP(in_features=OBS + K + ACT, out_features=1, num_cells=[8], activation_class=torch.nn.ReLU)
+    qvalue = ValueOperator(net, in_keys=[keys["discriminator_observation"], keys["skill"], keys["action"]],
+                           out_keys=[keys["state_action_value"]])
+    return actor, qvalue, make_discriminator(OBS, K, hidden=(8,), in_key=keys["discriminator_observation"])
+
+
+def _diayn_step(renamed):
+    keys = DIAYN_KEYS if renamed else {name: name for name in DIAYN_KEYS} | {
+        "discriminator_observation": "observation", "log_prob": "action_log_prob", "priority": "td_error"}
+    loss = DIAYNLoss(*_diayn_networks(keys), num_skills=K).make_value_estimator(gamma=0.9)
+    batch = _diayn_batch()
+    if renamed:
+        assert _fields(DIAYNLoss) == set(DIAYN_KEYS)
+        loss.set_keys(**DIAYN_KEYS)
+        batch = _renamed(batch, {"observation": "obs", "skill": "z", "action": "act", ("next", "observation"):
+                                 ("next", "obs"), ("next", "skill"): ("next", "z"), ("next", "reward"): ("next", "rew"),
+                                 ("next", "done"): ("next", "end"), ("next", "terminated"): ("next", "term")})
+    return _sgd_step(loss, batch, ["loss_actor", "loss_qvalue", "loss_discriminator"])
+
+
+def _stacked_diayn_step(renamed):
+    names = {"observation": "obs", "skill": "z", "discriminator_observation": "obs", "action": "act",
+             "noise": "eps", "terminated": "term"}
+    losses = [DIAYNLoss(*_diayn_networks({"discriminator_observation": "observation", "skill": "skill",
+                                          "action": "action", "state_action_value": "state_action_value"}),
+                        num_skills=K) for _ in range(2)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # reading the targets of a loss without an updater
+        loss = StackedDIAYNLoss.from_losses(losses, gamma=0.9)
+    batch = torch.stack([_diayn_batch(), _diayn_batch()])
+    g = torch.Generator().manual_seed(2)
+    batch["action_noise"], batch["next", "action_noise"] = (torch.randn(2, 8, ACT, generator=g) for _ in range(2))
+    if renamed:
+        assert _fields(StackedDIAYNLoss) == set(names)
+        loss.set_keys(**names)
+        batch = _renamed(batch, {"observation": "obs", "skill": "z", "action": "act", "action_noise": "eps",
+                                 ("next", "observation"): ("next", "obs"), ("next", "skill"): ("next", "z"),
+                                 ("next", "action_noise"): ("next", "eps"), ("next", "terminated"): ("next", "term")})
+    return _sgd_step(loss, batch, ["loss_actor", "loss_qvalue", "loss_discriminator"])
+
+
+@pytest.mark.parametrize("step", [_vime_step, _diayn_step, _stacked_diayn_step], ids=["vime", "diayn", "stacked"])
+def test_losses_with_every_key_renamed_train_a_step_as_with_the_defaults(step):
+    (out, before, after), (default_out, _, default_after) = step(True), step(False)
+    for key in out.keys(True, True):
+        assert torch.equal(out[key], default_out[key]), key
+    assert all(torch.equal(p, q) for p, q in zip(after, default_after))
+    assert any(not torch.equal(p, q) for p, q in zip(before, after))

@@ -1,4 +1,5 @@
-"""MAMLLoss: second-order meta-gradient vs finite differences, first order, reach, zero inner steps, adapt."""
+"""MAMLLoss: second-order meta-gradient vs finite differences, first order, reach, zero inner steps, adapt, another
+inner loss."""
 import re
 
 import pytest
@@ -8,6 +9,8 @@ from tensordict import TensorDict
 from umrl.modules.policy import make_gaussian_policy
 from umrl.objectives.maml import MAMLLoss, gaussian_kl
 from umrl.objectives.policy_gradient import vpg_loss
+from umrl.optim.meta_hvp import AnalyticHVP, ExactHVP, GaussNewtonHVP
+from umrl.optim.trpo import TRPOStep
 from umrl.rollout import FunctionalPolicy
 
 T, N, H, OBS, ACT = 2, 3, 4, 2, 2
@@ -44,7 +47,7 @@ def _batch(policy, params=None, seed=0, dtype=torch.float64):
 def _grad(loss_module, support, query):
     params = loss_module.params
     leaves = list(params.values(True, True))
-    loss, _ = loss_module.objective_and_kl(support, query)
+    loss = loss_module(loss_module.pack(support, query))["loss_objective"]
     return torch.cat([g.reshape(-1) for g in torch.autograd.grad(loss, leaves)])
 
 
@@ -66,7 +69,7 @@ def test_second_order_meta_gradient_matches_central_finite_differences():
             for sign in (1, -1):
                 flat[i] = old + sign * eps
                 with torch.no_grad():
-                    values.append(loss_module.objective_and_kl(support, query)[0].item())
+                    values.append(loss_module(loss_module.pack(support, query))["loss_objective"].item())
             flat[i] = old
             numeric.append((values[0] - values[1]) / (2 * eps))
     numeric = torch.tensor(numeric, dtype=torch.float64)
@@ -142,15 +145,15 @@ def test_gauss_newton_hvp_equals_the_exact_kl_hessian_through_the_inner_step(fir
     with torch.no_grad():
         query = _batch(policy, loss_module.adapt(support), seed=8)
     leaves = list(loss_module.params.values(True, True))
-    kl = loss_module.hvp_kl(support, query)
+    kl = ExactHVP(loss_module).kl(support, query)
     grad = torch.cat([g.reshape(-1) for g in torch.autograd.grad(kl, leaves, create_graph=True)])
-    hvp = loss_module.gauss_newton_hvp(support, query)
+    hvp = GaussNewtonHVP(loss_module).product(support, query)
     for seed in range(2):
         v = torch.randn(grad.numel(), generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
         exact = torch.cat([h.reshape(-1) for h in torch.autograd.grad(grad @ v, leaves, retain_graph=True)])
         torch.testing.assert_close(hvp(v), exact, rtol=1e-6, atol=1e-9)
     # the closure's KL (against the recorded collecting policy) has the same Hessian at θ
-    _, closure_kl = loss_module.objective_and_kl(support, query)
+    closure_kl = loss_module(loss_module.pack(support, query))["trust_region_kl"]
     g2 = torch.cat([g.reshape(-1) for g in torch.autograd.grad(closure_kl, leaves, create_graph=True)])
     exact = torch.cat([h.reshape(-1) for h in torch.autograd.grad(g2 @ v, leaves)])
     torch.testing.assert_close(hvp(v), exact, rtol=1e-5, atol=1e-8)
@@ -163,7 +166,7 @@ def test_reusing_the_inner_step_graph_gives_the_same_meta_gradient():
     adapted = loss_module.adapt(support)  # with its graph, as the recipe keeps it for the meta-step
     query = _batch(policy, adapted, seed=2)
     leaves = list(loss_module.params.values(True, True))
-    loss, _ = loss_module.objective_and_kl(support, query, phi=adapted)
+    loss = loss_module(loss_module.pack(support, query, adapted))["loss_objective"]
     reused = torch.cat([g.reshape(-1) for g in torch.autograd.grad(loss, leaves)])
     torch.testing.assert_close(reused, _grad(loss_module, support, query), rtol=0, atol=0)
     assert reused.abs().sum() > 0
@@ -179,3 +182,48 @@ def test_bad_hyperparameters_name_the_argument(kwargs, message):
     policy = make_gaussian_policy(2, 2, hidden=[4])
     with pytest.raises((TypeError, ValueError), match=re.escape(message)):
         MAMLLoss(policy, **kwargs)
+
+
+def per_trajectory_pg_loss(log_prob, support, *, advantage_key="advantage", mask_key="mask"):
+    """A second inner loss: VPG summed over each trajectory's valid steps, then averaged over trajectories [T]."""
+    weights = support[mask_key].to(log_prob.dtype)
+    return -(log_prob * support[advantage_key].squeeze(-1) * weights).sum(-1).mean(-1)
+
+
+def test_another_inner_loss_adapts_through_itself_and_trains_a_trpo_step():
+    policy = _policy()
+    loss_module = MAMLLoss(policy, inner_lr=0.2, inner_loss_fn=per_trajectory_pg_loss)
+    support = _batch(policy, seed=1)
+    adapted = loss_module.adapt(support)
+    theta = loss_module.params
+    for t in range(T):  # one SGD step on the given loss, not on VPG's
+        loss = per_trajectory_pg_loss(FunctionalPolicy(policy).log_prob(theta, support[t]), support[t])
+        for (key, p), g in zip(theta.items(True, True), torch.autograd.grad(loss, list(theta.values(True, True)))):
+            torch.testing.assert_close(adapted[t].get(key), p.detach() - 0.2 * g)
+    vpg_adapted = MAMLLoss(policy, inner_lr=0.2).adapt(support).detach()
+    assert not all(torch.allclose(a, b) for a, b in zip(adapted.detach().values(True, True),
+                                                          vpg_adapted.values(True, True)))
+    query = _batch(policy, adapted, seed=2)
+    leaves = list(theta.values(True, True))
+    v = torch.randn(sum(p.numel() for p in leaves), generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    exact = ExactHVP(loss_module).product(support, query)(v)  # the Gauss-Newton product holds for any inner loss
+    torch.testing.assert_close(GaussNewtonHVP(loss_module).product(support, query)(v), exact, rtol=1e-6, atol=1e-9)
+    assert exact.abs().sum() > 0
+    with pytest.raises(ValueError, match="the VPG inner loss"):
+        AnalyticHVP(loss_module).product(support, query)
+
+    before = [p.detach().clone() for p in leaves]
+    batch = loss_module.pack(support, query)
+
+    def closure():
+        out = loss_module(batch)
+        return out["loss_objective"], out["trust_region_kl"]
+
+    info = TRPOStep(theta, hvp=GaussNewtonHVP(loss_module), max_kl=0.01)(closure, batch=batch)
+    assert info["accepted"] == 1.0 and info["improvement"] > 0
+    assert any(not torch.equal(p, b) for p, b in zip(leaves, before))
+
+
+def test_inner_loss_fn_must_be_callable():
+    with pytest.raises(TypeError, match="inner_loss_fn: got 'vpg'; expected a callable"):
+        MAMLLoss(_policy(), inner_loss_fn="vpg")

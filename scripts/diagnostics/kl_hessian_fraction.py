@@ -38,7 +38,7 @@ from umrl.configs import validate
 from umrl.configs.maml import MAMLConfig
 from umrl.modules import policy_log_std
 from umrl.objectives.maml import gaussian_kl
-from umrl.objectives.maml_hvp import make_meta_hvp
+from umrl.optim.meta_hvp import make_meta_hvp
 from umrl.process import tune_process
 from umrl.runtime import seed_everything
 from umrl.trainers.maml import build, meta_batch, meta_step

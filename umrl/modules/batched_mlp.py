@@ -14,7 +14,7 @@ without a declaration, or one changed since (a layer replaced), gets ``None``, a
 
 :class:`ReLUMLPLinearization` differentiates such a network by hand when it is a ReLU MLP: forward tangents,
 gradients and their directional derivatives as batched matmuls over the kept activations, without an autograd graph
-(``MAMLLoss.analytic_gauss_newton_hvp`` builds the KL Hessian-vector product on them).
+(``umrl.optim.meta_hvp.AnalyticHVP`` builds the KL Hessian-vector product on them).
 """
 from __future__ import annotations
 
@@ -116,7 +116,7 @@ class BatchedGaussianMLP:
     @property
     def is_relu_mlp(self) -> bool:
         """Linear layers with a ReLU after each but the last, and an ``exp`` scale: what
-        :class:`ReLUMLPLinearization` and ``MAMLLoss.analytic_gauss_newton_hvp`` differentiate by hand."""
+        :class:`ReLUMLPLinearization` and ``umrl.optim.meta_hvp.AnalyticHVP`` differentiate by hand."""
         kinds = [kind if kind == "linear" else type(spec[0]) for kind, *spec in self.layers]
         return self.scale_mapping == "exp" and kinds == ["linear", nn.ReLU] * (len(kinds) // 2) + ["linear"]
 

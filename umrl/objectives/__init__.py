@@ -5,14 +5,12 @@
 - :class:`MAMLLoss` (:mod:`umrl.objectives.maml`): MAML with a policy-gradient inner step and TRPO's surrogate.
 - :class:`VIMELoss` (:mod:`umrl.objectives.vime`): the Bayesian dynamics model's negative ELBO.
 - :class:`ImportanceSamplingLoss` (:mod:`umrl.objectives.trpo_surrogate`): TRPO's surrogate for one policy (VIME).
-- MAML's KL Hessian-vector products for TRPO (:mod:`umrl.objectives.maml_hvp`) and the losses' value estimator
-  :class:`LinearBaselineGAE` (:mod:`umrl.objectives.advantage`).
+- the policy-gradient losses' value estimator :class:`LinearBaselineGAE` (:mod:`umrl.objectives.advantage`).
 - policy-gradient helpers (:mod:`umrl.objectives.policy_gradient`): advantages, baseline, surrogate, returns.
 """
 from umrl.objectives.advantage import LinearBaselineGAE
 from umrl.objectives.diayn import DIAYNLoss, DIAYNUpdate, make_diayn_optimizers
 from umrl.objectives.maml import MAMLLoss
-from umrl.objectives.maml_hvp import META_HVPS, AnalyticHVP, ExactHVP, GaussNewtonHVP, make_meta_hvp
 from umrl.objectives.policy_gradient import (
     baseline_features,
     compute_advantages,
@@ -26,12 +24,8 @@ from umrl.objectives.trpo_surrogate import ImportanceSamplingLoss
 from umrl.objectives.vime import VIMELoss
 
 __all__ = [
-    "META_HVPS",
-    "AnalyticHVP",
     "DIAYNLoss",
     "DIAYNUpdate",
-    "ExactHVP",
-    "GaussNewtonHVP",
     "ImportanceSamplingLoss",
     "LinearBaselineGAE",
     "MAMLLoss",
@@ -42,7 +36,6 @@ __all__ = [
     "episode_returns",
     "fit_linear_baseline",
     "make_diayn_optimizers",
-    "make_meta_hvp",
     "trajectory_mask",
     "vpg_loss",
 ]

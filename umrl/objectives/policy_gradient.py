@@ -52,13 +52,16 @@ __all__ = [
 ]
 
 
-def baseline_features(td: TensorDictBase, *, time_scale: float = 100.0, obs_clip: float = 10.0) -> torch.Tensor:
+def baseline_features(td: TensorDictBase, *, time_scale: float = 100.0, obs_clip: float = 10.0,
+                      observation_key: NestedKey = "observation", step_count_key: NestedKey = "step_count",
+                      ) -> torch.Tensor:
     """Features ``(o, o², t, t², t³, 1)`` of shape ``[..., N, H, 2 * obs_dim + 4]`` (rllab's linear baseline).
 
-    ``o`` is the observation clipped to ``±obs_clip``; ``t = step_count / time_scale``.
+    ``o`` is the observation (``td[observation_key]``) clipped to ``±obs_clip``; ``t = step_count / time_scale``
+    (``td[step_count_key]``).
     """
-    obs = td["observation"].clamp(-obs_clip, obs_clip)
-    t = td["step_count"].to(obs.dtype) / time_scale
+    obs = td.get(observation_key).clamp(-obs_clip, obs_clip)
+    t = td.get(step_count_key).to(obs.dtype) / time_scale
     return torch.cat([obs, obs.pow(2), t, t.pow(2), t.pow(3), torch.ones_like(t)], dim=-1)
 
 
@@ -133,28 +136,39 @@ def compute_advantages(
     normalize: bool = True,
     reg_coeff: float = 1e-5,
     time_scale: float = 100.0,
+    observation_key: NestedKey = "observation",
+    step_count_key: NestedKey = "step_count",
+    reward_key: NestedKey = "reward",
+    done_key: NestedKey = "done",
+    mask_key: NestedKey = "mask",
+    advantage_key: NestedKey = "advantage",
+    value_target_key: NestedKey = "value_target",
+    value_key: NestedKey = "state_value",
 ) -> TensorDictBase:
     """Fit the linear feature baseline and write GAE advantages, in place.
 
     Reads ``"observation"``, ``"step_count"``, ``("next", "reward")``, ``("next", "done")`` and ``"mask"`` (computed
-    from ``done`` if absent). Writes ``"value_target"`` (discounted return-to-go), ``"state_value"`` (baseline) and
-    ``"advantage"``, each ``[..., N, H, 1]`` and zero on masked steps. With ``normalize`` the advantages of each
-    leading index are standardised over its valid steps (rllab's ``center_adv``).
+    from ``done`` and written if absent). Writes ``"value_target"`` (discounted return-to-go), ``"state_value"``
+    (baseline) and ``"advantage"``, each ``[..., N, H, 1]`` and zero on masked steps. With ``normalize`` the
+    advantages of each leading index are standardised over its valid steps (rllab's ``center_adv``). The ``*_key``
+    arguments rename each of these entries (``reward_key`` and ``done_key`` under ``"next"``, as in TorchRL's value
+    estimators).
     """
     if td.batch_dims < 2:
         raise ValueError(f"expected a batch [..., N, H] of trajectories, got batch size {tuple(td.batch_size)}.")
-    done = td["next", "done"]
-    if "mask" not in td:
-        td.set("mask", trajectory_mask(done))
-    mask = td["mask"]
+    done = td.get(("next", done_key))
+    mask = td.get(mask_key, None)
+    if mask is None:
+        mask = trajectory_mask(done)
+        td.set(mask_key, mask)
     valid = mask.unsqueeze(-1)
-    reward = td["next", "reward"] * valid
+    reward = td.get(("next", reward_key)) * valid
     ends = done | ~valid  # every step after the first episode is its own (zero-reward) end
     zeros = torch.zeros_like(reward)
     _, returns = _gae(gamma, 1.0, zeros, zeros, reward, ends)
-    values = fit_linear_baseline(
-        baseline_features(td, time_scale=time_scale), returns, mask, reg_coeff=reg_coeff
-    ) * valid
+    features = baseline_features(td, time_scale=time_scale, observation_key=observation_key,
+                                 step_count_key=step_count_key)
+    values = fit_linear_baseline(features, returns, mask, reg_coeff=reg_coeff) * valid
     next_values = torch.cat([values[..., 1:, :], torch.zeros_like(values[..., :1, :])], dim=-2)
     advantage, _ = _gae(gamma, lmbda, values, next_values, reward, ends)
     advantage = advantage * valid
@@ -164,9 +178,9 @@ def compute_advantages(
         mean = advantage.sum(dims, keepdim=True) / count
         var = ((advantage - mean).pow(2) * valid).sum(dims, keepdim=True) / count
         advantage = (advantage - mean) / (var.sqrt() + 1e-8) * valid
-    td.set("value_target", returns * valid)
-    td.set("state_value", values)
-    td.set("advantage", advantage)
+    td.set(value_target_key, returns * valid)
+    td.set(value_key, values)
+    td.set(advantage_key, advantage)
     return td
 
 

@@ -86,14 +86,15 @@ class ImportanceSamplingLoss(LossModule):
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         if self._value_estimator is not None:
-            self._value_estimator.advantage_key = self.tensor_keys.advantage
+            self._value_estimator.set_keys(advantage=self.tensor_keys.advantage, mask=self.tensor_keys.mask)
 
     def make_value_estimator(self, value_type=None, **hyperparams) -> ImportanceSamplingLoss:
         """Set :attr:`value_estimator` (:class:`~umrl.objectives.advantage.LinearBaselineGAE`, ``gamma``,
         ``lmbda``, ``normalize``); ``value_type`` None or ``ValueEstimators.GAE``."""
         check_value_type(value_type)
         hyperparams.pop("device", None)
-        self._value_estimator = LinearBaselineGAE(**hyperparams, advantage_key=self.tensor_keys.advantage)
+        self._value_estimator = LinearBaselineGAE(**hyperparams)
+        self._forward_value_estimator_keys()
         return self
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:

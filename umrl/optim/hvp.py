@@ -4,7 +4,7 @@ A strategy's :meth:`HessianVectorProduct.build` returns the *undamped* product `
 like the parameters' leaves; TRPO adds its damping. It is called once per step, after the surrogate's gradient, with
 the closure's KL (a differentiable scalar), the parameter leaves and the step's ``batch`` (whatever the caller passed
 to the step, e.g. a MAML meta-batch). :class:`KLHessian` is the general one (double backward of a KL); MAML's
-products through the inner step live beside its loss (:mod:`umrl.objectives.maml_hvp`).
+products through the inner step are in :mod:`umrl.optim.meta_hvp`.
 
 Example:
     >>> import torch

@@ -10,7 +10,7 @@ policy updates. It is agnostic to what the surrogate is: it only needs
   The first call can be replaced by its ready value (``initial=``) when the caller already has it.
 * a Hessian-vector product strategy, given once at construction (``hvp=``, :mod:`umrl.optim.hvp`): by default the
   double backward of the closure's ``kl`` (:class:`~umrl.optim.hvp.KLHessian`); MAML's products through the inner
-  step are in :mod:`umrl.objectives.maml_hvp`. The step's ``batch=`` argument is handed to the strategy.
+  step are in :mod:`umrl.optim.meta_hvp`. The step's ``batch=`` argument is handed to the strategy.
 
 Example (a linear Gaussian policy's mean pulled towards targets, unit variance):
     >>> from tensordict import TensorDict
