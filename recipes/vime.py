@@ -4,35 +4,10 @@
     python recipes/vime.py env.name=half_cheetah logger.backend=csv
     python recipes/vime.py env.name=point_nav resume=true         # continue from the latest checkpoint
 
-A Hydra main over :func:`umrl.trainers.vime.train`: configs in ``umrl/configs/vime.yaml`` (``--cfg job`` prints the resolved
-one), process tuning (:func:`umrl.process.tune_process`: ``num_threads``), then training; logging, checkpoints and
-resumption are the library's (:mod:`umrl.trainers.vime`).
+The checkout's name for ``umrl vime`` (:mod:`umrl.cli.vime`): the same Hydra app, overrides and config
+(``umrl/configs/vime.yaml``; ``--cfg job`` prints the resolved one).
 """
-from __future__ import annotations
-
-import logging
-
-import hydra
-from omegaconf import DictConfig
-
-from umrl.process import tune_process
-from umrl.runtime import log_location, run_summary
-from umrl.trainers.config import register_help_text
-from umrl.trainers.vime import train
-
-SUMMARY_KEYS = ("train/frames", "bonus/info_gain_median", "dynamics/heldout_log_likelihood", "coverage/cumulative_area",
-                "coverage/cumulative_velocity_range")
-"""What the command line prints when a run ends (every metric is in the logs)."""
-
-
-@hydra.main(version_base="1.3", config_path="pkg://umrl.configs", config_name="vime")
-def main(cfg: DictConfig) -> None:
-    tune_process(num_threads=cfg.num_threads)  # this process is the run's: umrl's process-wide settings
-    result = train(cfg)
-    logging.getLogger(__name__).info(run_summary(f"vime {cfg.env.name} finished", result, SUMMARY_KEYS,
-                                                 log_location(cfg.logger, cfg.output_dir)))
-
+from umrl.cli import run
 
 if __name__ == "__main__":
-    register_help_text()
-    main()
+    run("vime")

@@ -87,11 +87,11 @@ def test_maml_config_checks_env_arena(value):
 
 def test_uml_random_arena_runs_end_to_end_in_a_tiny_suite(tmp_path):
     assert METHODS["uml_random_arena"].pretraining.kind == "maml_random_arena"
-    default_methods = compose_config("benchmarks/config", "suite", []).methods
+    default_methods = compose_config("umrl/suite/config", "suite", []).methods
     assert "uml_random_arena" not in default_methods  # an ablation: asked for by name only
     maml = {"iterations": 1, "meta_batch_size": 2, "trajectories_per_task": 2, "num_skills": 4, "env.horizon": 10,
             "policy.hidden": "[16]", "trpo.cg_iters": 2, "checkpoint.every": 1}
-    cfg = compose_config("benchmarks/config", "suite", [
+    cfg = compose_config("umrl/suite/config", "suite", [
         f"output_dir={tmp_path}", "methods=[uml_random_arena]", "seeds=[0]", "pretrain_seeds=0", "num_tasks=2",
         "protocol.num_steps=1", "protocol.num_trajectories=2", "protocol.horizon=10", "report.steps=[0]",
         "logger.backend=none", "ablation.enabled=false", "launcher.threads=1", "launcher.workers=0",

@@ -32,7 +32,7 @@ GIB = 2**30
 def suite(overrides=()):
     from hydra import compose as hydra_compose
 
-    with config_dir(REPO / "benchmarks" / "config"):
+    with config_dir(REPO / "umrl" / "suite" / "config"):
         return hydra_compose("suite", overrides=list(overrides))
 
 

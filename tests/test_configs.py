@@ -21,12 +21,12 @@ from umrl.runtime import Checkpointer
 
 RECIPES = {"diayn": DIAYNConfig, "maml": MAMLConfig, "vime": VIMEConfig}
 SCHEMAS = {**RECIPES, "suite": SuiteConfig}
-PROFILES = sorted(p.stem for p in (REPO / "benchmarks/config/profile").glob("*.yaml"))
+PROFILES = sorted(p.stem for p in (REPO / "umrl/suite/config/profile").glob("*.yaml"))
 
 
 def compose(name: str, overrides=()):
     if name == "suite":
-        return compose_config("benchmarks/config", "suite", overrides)
+        return compose_config("umrl/suite/config", "suite", overrides)
     return compose_config("umrl/configs", name, overrides)
 
 
@@ -61,18 +61,18 @@ def load_yaml(relative: str) -> dict:
 
 @pytest.mark.parametrize("name", list(SCHEMAS))
 def test_yaml_keys_equal_schema_keys(name):
-    path = "benchmarks/config/suite.yaml" if name == "suite" else f"umrl/configs/{name}.yaml"
+    path = "umrl/suite/config/suite.yaml" if name == "suite" else f"umrl/configs/{name}.yaml"
     assert yaml_keys(load_yaml(path), SCHEMAS[name]) == schema_keys(SCHEMAS[name])
 
 
 @pytest.mark.parametrize("profile", PROFILES)
 def test_profile_keys_are_schema_keys_with_valid_values(profile):
-    values = load_yaml(f"benchmarks/config/profile/{profile}.yaml")
+    values = load_yaml(f"umrl/suite/config/profile/{profile}.yaml")
     assert yaml_keys(values, SuiteConfig) <= schema_keys(SuiteConfig)
     assert check_partial(values, SuiteConfig) == []
 
 
-@pytest.mark.parametrize("path", [*(f"umrl/configs/{name}.yaml" for name in RECIPES), "benchmarks/config/suite.yaml"])
+@pytest.mark.parametrize("path", [*(f"umrl/configs/{name}.yaml" for name in RECIPES), "umrl/suite/config/suite.yaml"])
 def test_env_lists_in_config_comments_are_the_registered_envs(path):
     """The comments beside ``env.name`` / ``envs`` list every registered env, and only those."""
     comments = [line.split("#", 1)[1] for line in (REPO / path).read_text().splitlines()
@@ -209,7 +209,7 @@ def test_missing_and_unreadable_keys_are_named():
     values["output_dir"] = "${nowhere}"
     with pytest.raises(ConfigError) as info:
         validate(values, VIMEConfig)
-    assert "trpo.cg_iters: missing; VIMETRPOConfig requires it" in info.value.errors
+    assert "trpo.cg_iters: missing; TRPOConfig requires it" in info.value.errors
     assert any(e.startswith("output_dir: cannot be read (InterpolationKeyError") for e in info.value.errors)
 
 

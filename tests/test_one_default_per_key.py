@@ -18,7 +18,7 @@ def _plain(value):
 
 @pytest.mark.parametrize("group, cls", [("protocol", AdaptationConfig), ("sweep", SweepConfig), (None, CellSpec)])
 def test_suite_yaml_agrees_with_the_dataclass_defaults(group, cls):
-    suite = OmegaConf.to_container(OmegaConf.load(REPO / "benchmarks/config/suite.yaml"))
+    suite = OmegaConf.to_container(OmegaConf.load(REPO / "umrl/suite/config/suite.yaml"))
     values = suite[group] if group else suite
     shared = sorted(set(values) & set(_defaults(cls)))
     assert shared, f"no key of {cls.__name__} in the suite's yaml"

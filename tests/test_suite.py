@@ -26,7 +26,7 @@ TINY = ["num_tasks=2", "protocol.num_steps=1", "protocol.num_trajectories=2", "p
 
 
 def _cfg(tmp_path, *overrides):
-    cfg = compose_config("benchmarks/config", "suite", [f"output_dir={tmp_path}", *TINY, *overrides])
+    cfg = compose_config("umrl/suite/config", "suite", [f"output_dir={tmp_path}", *TINY, *overrides])
     return validate(cfg, SuiteConfig)
 
 
@@ -114,17 +114,17 @@ def test_independent_pretraining_per_seed_and_both_sgd_schedules(tmp_path):
 
 
 def test_reference_profile_runs_k100_both_schedules_independent_pretraining():
-    cfg = validate(compose_config("benchmarks/config", "suite", ["profile=reference"]), SuiteConfig)
+    cfg = validate(compose_config("umrl/suite/config", "suite", ["profile=reference"]), SuiteConfig)
     assert cfg.protocol.num_steps == 100 and list(cfg.protocol.sgd_schedule) == ["reference", "constant"]
     assert cfg.pretrain_seeds is None
     assert pretrain_seeds(cfg) == list(cfg.seeds)
-    quick = compose_config("benchmarks/config", "suite", ["profile=quick"])
+    quick = compose_config("umrl/suite/config", "suite", ["profile=quick"])
     assert pretrain_seeds(quick) == [0, 0, 0] and quick.protocol.sgd_schedule == "reference"
 
 
 def test_removed_profile_name_lists_the_profiles():
     with pytest.raises(Exception, match=r"(?s)profile/paper.*quick.*reference"):
-        compose_config("benchmarks/config", "suite", ["profile=paper"])
+        compose_config("umrl/suite/config", "suite", ["profile=paper"])
 
 
 def test_existing_cell_is_skipped(tmp_path):

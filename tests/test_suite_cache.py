@@ -22,7 +22,7 @@ TINY_DIAYN = {"env.num_envs": 4, "env.horizon": 10, "collector.frames_per_batch"
 
 
 def _cfg(tmp_path, *overrides):
-    return compose_config("benchmarks/config", "suite", [f"output_dir={tmp_path}", *TINY, *overrides])
+    return compose_config("umrl/suite/config", "suite", [f"output_dir={tmp_path}", *TINY, *overrides])
 
 
 def _quiet(_):

@@ -1,4 +1,4 @@
-"""Schema of ``benchmarks/config/suite.yaml`` and its profiles (the benchmark suite)."""
+"""Schema of ``umrl/suite/config/suite.yaml`` and its profiles (the benchmark suite)."""
 # ruff: noqa: RUF009  (the field helpers of umrl.configs.validate return dataclasses.field(...) objects)
 from __future__ import annotations
 
@@ -198,7 +198,7 @@ class ReportConfig:
 
 @dataclass
 class SuiteConfig:
-    """Every key of ``benchmarks/config/suite.yaml`` (after a profile); the yaml's comments say what each does."""
+    """Every key of ``umrl/suite/config/suite.yaml`` (after a profile); the yaml's comments say what each does."""
 
     profile_name: str = name()  # a folder name under outputs/suite
     envs: list[str] = choice_list(ENV_NAMES, min_len=1)

@@ -12,11 +12,12 @@ slowed the MAML learning step on point_nav (0.85-1.00 s -> 1.14-1.16 s, ``meta_i
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager
 
-import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase, TransformedEnv
+
+from umrl.process import torch_threads
 
 __all__ = ["batches_beside_physics", "physics_threads", "torch_threads_beside_physics"]
 
@@ -28,22 +29,13 @@ def physics_threads(env: EnvBase) -> int:
     return getattr(env, "physics_threads", 1)
 
 
-@contextmanager
-def torch_threads_beside_physics(env: EnvBase) -> Iterator[None]:
+def torch_threads_beside_physics(env: EnvBase) -> AbstractContextManager[None]:
     """Run the block (a rollout of ``env``) on one torch thread if ``env`` steps physics on several CPU threads.
 
     No-op otherwise (point_nav, the gym backend, a batched MuJoCo env on one thread); the thread count is restored
-    on exit, also after an error.
+    on exit, also after an error (:func:`umrl.process.torch_threads`).
     """
-    previous = torch.get_num_threads()
-    if physics_threads(env) <= 1 or previous == 1:
-        yield
-        return
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
+    return torch_threads(1 if physics_threads(env) > 1 else None)
 
 
 def batches_beside_physics(collector: Iterable[TensorDictBase], env: EnvBase) -> Iterator[TensorDictBase]:

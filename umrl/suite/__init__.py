@@ -1,7 +1,8 @@
 """The benchmark suite: does unsupervised meta-learning make RL faster here?
 
 :func:`run_suite` runs UML-DIAYN, UML-random, oracle, VIME-init, DIAYN-init and scratch on the chosen envs and seeds
-for a suite config (``benchmarks/suite.py`` is its command line, with the configs in ``benchmarks/config/``).
+for a suite config (``umrl suite`` or ``benchmarks/suite.py`` is its command line, with the configs in
+:data:`CONFIG_DIR`).
 
 0. **Validation**: the config is checked against :class:`umrl.configs.suite.SuiteConfig` and every recipe config
    the suite will run is composed (``umrl.trainers.compose``) and checked against its schema, so every bad key or value
@@ -35,8 +36,10 @@ tabulated live in :mod:`umrl.metatest`. Jobs run as fresh worker processes (``la
 output goes to ``logs/<job>.log``), in this process (``launcher.workers=0``) or as Ray tasks when ``launcher.ray_address`` is set
 (``local`` starts a Ray instance on this machine). The local workers are plain subprocesses (no multiprocessing
 semaphores: a suite killed with SIGKILL leaves nothing in ``/dev/shm``). A failed job is printed with its error and
-the tail of its log. Every value is a config override (``benchmarks/config/``).
+the tail of its log. Every value is a config override (:data:`CONFIG_DIR`).
 """
+from pathlib import Path
+
 from umrl.suite.plan import (
     BUDGET_KEYS,
     PretrainRun,
@@ -53,6 +56,10 @@ from umrl.suite.plan import (
 from umrl.suite.report import report, summarize_timings
 from umrl.suite.run import code_version, run_suite, suite_group
 
-__all__ = ["BUDGET_KEYS", "PretrainRun", "cell_spec", "checkpoint_identity", "code_version", "hydra_overrides",
-           "keyed_cell", "plan", "plan_ablation", "plan_pretraining", "pretrain_key", "report", "run_suite",
+CONFIG_DIR = Path(__file__).resolve().parent / "config"
+"""The suite's Hydra configs, installed with the package: ``suite.yaml`` (every key, with its comment) and the
+``profile/`` presets (``tiny``, ``quick``, ``reference``)."""
+
+__all__ = ["BUDGET_KEYS", "CONFIG_DIR", "PretrainRun", "cell_spec", "checkpoint_identity", "code_version",
+           "hydra_overrides", "keyed_cell", "plan", "plan_ablation", "plan_pretraining", "pretrain_key", "report", "run_suite",
            "sgd_schedules", "suite_group", "summarize_timings"]

@@ -61,8 +61,8 @@ def compose(name: str, overrides: Sequence[str] = ()) -> DictConfig:
 
 def register_help_text(directory: str | Path = CONFIG_DIR) -> None:
     """Make ``${umrl_config_text:<name>}`` the text of ``<directory>/<name>.yaml`` as written, comments included: the
-    command lines' ``--help`` (their ``hydra.help.template``) shows every key with its comment. The scripts call it
-    under ``if __name__ == "__main__"``, before Hydra reads ``--help``."""
+    command lines' ``--help`` (their ``hydra.help.template``) shows every key with its comment. The command lines
+    (:func:`umrl.cli.run`) call it before Hydra reads ``--help``."""
     def text(name: str) -> str:
         return (Path(directory) / f"{name}.yaml").read_text().replace("$", "$$")  # Hydra fills the template with
         # string.Template, where "$$" is a literal "$"
