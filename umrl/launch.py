@@ -14,22 +14,18 @@ import subprocess
 import sys
 import threading
 import time
-import warnings
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from umrl.process import tuned_call
 
 __all__ = [
-    "DirectoryLocked",
     "InlineLauncher",
     "Job",
     "JobError",
     "LocalLauncher",
     "RayLauncher",
-    "directory_lock",
     "failure_message",
     "log_tail",
     "make_launcher",
@@ -230,53 +226,6 @@ class RayLauncher:
 
     def shutdown(self) -> None:  # the Ray instance belongs to whoever started it
         return None
-
-
-class DirectoryLocked(RuntimeError):
-    """Another live process holds the lock of the directory (its pid is in the message)."""
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # alive, another user's
-        return True
-    return True
-
-
-@contextmanager
-def directory_lock(directory: str | os.PathLike, name: str = "suite.lock") -> Iterator[Path]:
-    """Hold ``<directory>/<name>`` (holding this process's pid) while the block runs: two suites in one output_dir
-    would run the same jobs into the same files.
-
-    A lock held by a live process raises :class:`DirectoryLocked` naming its pid; one left by a dead process (a
-    driver killed with SIGKILL) is taken over with a warning. The lock is removed when the block ends."""
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    lock = directory / name
-    while True:
-        try:
-            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-        except FileExistsError:
-            text = lock.read_text().strip() if lock.exists() else ""
-            pid = int(text) if text.isdigit() else None
-            if pid is not None and _alive(pid):
-                raise DirectoryLocked(f"output_dir: got {str(directory)!r}, in use by another suite (pid {pid}, lock "
-                                      f"{lock}); expected a directory no running suite uses (wait for pid {pid} to "
-                                      "finish or choose another output_dir)") from None
-            warnings.warn(f"taking over the stale lock {lock} of pid {pid}, which is no longer running", stacklevel=3)
-            lock.unlink(missing_ok=True)
-            continue
-        with os.fdopen(fd, "w") as f:
-            f.write(str(os.getpid()))
-        break
-    try:
-        yield lock
-    finally:
-        if lock.exists() and lock.read_text().strip() == str(os.getpid()):
-            lock.unlink()
 
 
 def make_launcher(launcher_cfg: Mapping, output_dir: str | os.PathLike = "."):

@@ -1,8 +1,8 @@
 """What every recipe needs around its training loop: seeding, loggers, checkpoints.
 
-Loggers are TorchRL's (:func:`torchrl.record.loggers.get_logger`): ``wandb`` in offline mode by default (runs land in
-``<output_dir>/wandb/offline-run-*``; publish them later with ``wandb sync``), ``csv`` as a dependency-free
-alternative, ``none`` for tests. Checkpoints are :mod:`umrl.checkpoint_file` files (data only, hash-checked)
+Loggers are TorchRL's (:func:`torchrl.record.loggers.get_logger`): ``wandb`` in offline mode by default (the runs of
+one output tree land in one ``wandb/`` folder, :func:`wandb_dir`; publish them later with ``wandb sync``), ``csv`` as a
+dependency-free alternative, ``none`` for tests. Checkpoints are :mod:`umrl.checkpoint_file` files (data only, hash-checked)
 written atomically, with the resolved config beside them (their formats, saving and checked loading live in
 :mod:`umrl.checkpoints`); :func:`rng_state` / :func:`set_rng_state` and :func:`env_state` / :func:`load_env_state` capture what a faithful resume restores.
 """
@@ -14,7 +14,7 @@ import random
 import re
 import stat
 import warnings
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path
@@ -27,7 +27,7 @@ from torchrl.data import ReplayBuffer
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.record.loggers import Logger, get_logger
 
-from umrl.checkpoint_file import CheckpointError, read_state, write_state
+from umrl.checkpoint_file import CheckpointError, file_kind, read_state, write_state
 from umrl.validation import check_name
 
 LOGGER_BACKENDS = ("wandb", "csv", "none")
@@ -120,13 +120,54 @@ def to_container(config: Any) -> dict:
     return dict(config)
 
 
-def make_logger(logger_cfg: Mapping, *, exp_name: str, config: Any = None, log_dir: str | os.PathLike = ".") -> Logger | None:
+def output_tree_root(log_dir: str | os.PathLike) -> Path:
+    """The root of the output tree ``log_dir`` lies in: its first folder when it is relative (``outputs`` for every
+    recipe's default ``output_dir``; leading ``..`` kept), ``log_dir`` itself when it is absolute.
+
+    >>> [str(output_tree_root(d)) for d in ("outputs/maml/point_nav/oracle/seed0", "../runs/a", "/data/sweep", ".")]
+    ['outputs', '../runs', '/data/sweep', '.']
+    """
+    path = Path(os.path.normpath(log_dir))
+    if path.is_absolute() or not path.parts:
+        return path
+    ups = sum(part == ".." for part in path.parts)  # normpath leaves ".." only in front
+    return Path(*path.parts[:ups + 1])
+
+
+def wandb_dir(log_dir: str | os.PathLike = ".") -> Path:
+    """The folder whose ``wandb/`` receives the wandb runs of a job writing to ``log_dir``: ``$WANDB_DIR`` when set,
+    else :func:`output_tree_root`. One folder per tree, so ``wandb sync <folder>/wandb`` (or ``wandb sync`` run in
+    ``<folder>``) finds every run."""
+    return Path(os.environ["WANDB_DIR"]) if os.environ.get("WANDB_DIR") else output_tree_root(log_dir)
+
+
+@contextmanager
+def wandb_dir_default(root: str | os.PathLike) -> Iterator[None]:
+    """Inside the block, runs of this process and of the processes it starts write to ``root/wandb``: sets the
+    ``WANDB_DIR`` environment variable to ``root`` (absolute) and removes it on exit. A ``WANDB_DIR`` the user set
+    is left as it is. The suite wraps its jobs and reports in it, so ``wandb sync <suite output_dir>/wandb`` finds
+    every run of the suite."""
+    if os.environ.get("WANDB_DIR"):
+        yield
+        return
+    os.environ["WANDB_DIR"] = str(Path(root).absolute())
+    try:
+        yield
+    finally:
+        os.environ.pop("WANDB_DIR", None)
+
+
+def make_logger(logger_cfg: Mapping, *, exp_name: str, job_type: str | None = None, config: Any = None,
+                log_dir: str | os.PathLike = ".") -> Logger | None:
     """Build the TorchRL logger named by ``logger_cfg["backend"]`` and log ``config`` as hyperparameters.
 
     ``logger_cfg`` keys: ``backend`` (``wandb`` | ``csv`` | ``none``), optional ``project``, ``group``, ``mode``
     (wandb: ``offline`` by default, ``online`` to stream, ``disabled``; the ``WANDB_MODE`` environment variable wins).
-    CSV logs go to ``<log_dir>/csv/<exp_name>/``; wandb runs to ``$WANDB_DIR/wandb`` if set, else
-    ``<log_dir>/wandb`` (recipes pass their ``output_dir``: nothing lands in the current directory).
+    ``job_type`` names what the run is (the recipes pass their name: ``diayn``, ``maml``, ``vime``; the suite's
+    report runs ``meta_test`` and ``report``); with ``group`` it is what wandb groups runs by.
+    CSV logs go to ``<log_dir>/csv/<exp_name>/``; wandb runs to ``<wandb_dir(log_dir)>/wandb`` (:func:`wandb_dir`:
+    ``$WANDB_DIR`` if set, else the root of the output tree; recipes pass their ``output_dir``: nothing lands in the
+    current directory).
 
     Every call starts a new wandb run, also while another one is open in this process (Hydra multirun, a Ray
     worker running several jobs); :func:`close_logger` ends it, and inside a :func:`finishing_loggers` block that
@@ -146,11 +187,13 @@ def make_logger(logger_cfg: Mapping, *, exp_name: str, config: Any = None, log_d
         # the mode goes to wandb.init only: TorchRL's own offline=True also sets WANDB_MODE for the whole process
         logger = get_logger(
             "wandb",
-            logger_name=os.environ.get("WANDB_DIR") or str(log_dir),
+            # absolute: wandb's service process, shared by the runs of this process, has its own working directory
+            logger_name=str(wandb_dir(log_dir).absolute()),
             experiment_name=exp_name,
             wandb_kwargs={
                 "project": logger_cfg.get("project", "umrl"),
                 "group": logger_cfg.get("group"),
+                "job_type": job_type,
                 "mode": mode,
                 "reinit": "create_new",  # wandb's default hands back the open run: two jobs would share it
             },
@@ -195,7 +238,7 @@ def log_location(logger_cfg: Mapping, log_dir: str | os.PathLike = ".") -> str:
     if backend == "csv":
         return f"{Path(log_dir) / 'csv'} (CSV)"
     mode = os.environ.get("WANDB_MODE", logger_cfg.get("mode", "offline"))
-    return f"{Path(os.environ.get('WANDB_DIR') or log_dir) / 'wandb'} (wandb, {mode})"
+    return f"{wandb_dir(log_dir) / 'wandb'} (wandb, {mode})"
 
 
 def run_summary(title: str, result: Mapping[str, Any], keys: Sequence[str], logs: str) -> str:
@@ -224,14 +267,48 @@ def log_metrics(logger: Logger | None, metrics: Mapping[str, float], step: int) 
         logger.log_scalar(name, value if math.isfinite(value) else float("nan"), step=step)
 
 
+def _wandb_run(logger: Logger | None) -> Any:
+    """``logger``'s wandb run, or ``None`` for other backends."""
+    experiment = getattr(logger, "experiment", None)
+    return experiment if experiment is not None and hasattr(experiment, "log") else None
+
+
 def log_image(logger: Logger | None, name: str, path: str | os.PathLike, step: int) -> None:
     """Log a PNG file to wandb (other backends keep the file on disk only)."""
-    experiment = getattr(logger, "experiment", None)
-    if experiment is None or not hasattr(experiment, "log"):
+    run = _wandb_run(logger)
+    if run is None:
         return
     import wandb
 
-    experiment.log({name: wandb.Image(str(path)), "step": step})
+    run.log({name: wandb.Image(str(path)), "step": step})
+
+
+def log_table(logger: Logger | None, name: str, columns: Sequence[str], rows: Sequence[Sequence[Any]]) -> None:
+    """Log a table to wandb: ``columns`` names, ``rows`` one list of values each (other backends: nothing; the
+    callers keep the same numbers in files)."""
+    run = _wandb_run(logger)
+    if run is None:
+        return
+    import wandb
+
+    run.log({name: wandb.Table(columns=list(columns), data=[list(row) for row in rows])})
+
+
+def log_band(logger: Logger | None, name: str, x: Sequence[float], lines: Mapping[str, Sequence[float]], *,
+             xname: str, title: str) -> None:
+    """Log a curve with its interval to wandb as one table ``name`` (column ``xname`` then one column per entry of
+    ``lines``, e.g. ``iqm``, ``iqm_low``, ``iqm_high``) and a line plot ``<name>_plot`` of those lines
+    (``wandb.plot.line_series``, which works offline); other backends: nothing."""
+    run = _wandb_run(logger)
+    if run is None:
+        return
+    import wandb
+
+    columns = [xname, *lines]
+    rows = [[x_value, *(float(line[i]) for line in lines.values())] for i, x_value in enumerate(x)]
+    plot = wandb.plot.line_series(xs=list(x), ys=[[float(v) for v in line] for line in lines.values()],
+                                  keys=list(lines), title=title, xname=xname)
+    run.log({name: wandb.Table(columns=columns, data=rows), f"{name}_plot": plot})
 
 
 def save_figure(fig: Any, path: str | os.PathLike, *, dpi: int = 120) -> Path:
@@ -255,8 +332,8 @@ def check_finite(losses: Mapping[str, torch.Tensor], where: str) -> None:
 
 def read_checkpoint(path: str | os.PathLike) -> Any:
     """The state saved at ``path`` (:mod:`umrl.checkpoint_file`: tensors as data, hash checked; nothing is
-    unpickled), tensors on the CPU; a truncated, corrupted, empty or foreign file raises :class:`CheckpointError`
-    naming it, a torch.save pickle of older umrl versions its subclass
+    unpickled), tensors on the CPU; a truncated, corrupted, empty, foreign, special or malformed file raises
+    :class:`CheckpointError` naming it, a torch.save pickle of older umrl versions its subclass
     :class:`~umrl.checkpoint_file.LegacyCheckpointError` (``python -m umrl.checkpoints.convert`` a trusted one)."""
     return read_state(path)
 
@@ -273,9 +350,10 @@ class Checkpointer:
     """Saves ``state`` dicts as ``<directory>/step_<N>.pt`` with the resolved config in ``<directory>/config.yaml``.
 
     Every file is written atomically (a ``.tmp`` then ``os.replace``). The temporary files a killed save left behind
-    (``step_<N>.pt.tmp``, ``config.yaml.tmp``) are removed by the writer: at its first :meth:`save` or
-    :meth:`load_latest_valid` (a resume). Read-only lookups (:meth:`latest`, :func:`resolve_checkpoint`, loaders)
-    never touch them: another run may be writing there.
+    (``step_<N>.pt.tmp``, ``config.yaml.tmp`` and safetensors' own hidden ``.tmp<6 letters or digits>``) are removed
+    by the writer: by :meth:`remove_stale_tmp`, which the trainers call once they hold their folder's lock
+    (:mod:`umrl.folder_lock`), else at its first :meth:`save` or :meth:`load_latest_valid` (a resume). Read-only
+    lookups (:meth:`latest`, :func:`resolve_checkpoint`, loaders) never touch them: another run may be writing there.
 
     A checkpoint is exactly what :meth:`save` writes: an entry whose whole name is ``step_<N>.pt`` and which is a
     regular file, not a symlink (checked with ``os.lstat``, without opening it). Anything else in the folder
@@ -287,16 +365,19 @@ class Checkpointer:
     """
 
     _pattern = re.compile(r"step_([0-9]+)\.pt")
-    _tmp_pattern = re.compile(r"step_[0-9]+\.pt\.tmp|config\.yaml\.tmp")
+    _tmp_pattern = re.compile(r"step_[0-9]+\.pt\.tmp|config\.yaml\.tmp|\.tmp[A-Za-z0-9]{6}")
+    """What a killed :meth:`save` leaves: its own ``.tmp`` files, and the hidden file safetensors writes first (the
+    ``tempfile`` crate's ``.tmp`` + 6 random letters or digits, renamed to the ``.pt.tmp`` once complete)."""
 
     def __init__(self, directory: str | os.PathLike, keep_all: bool = False):
         self.directory = Path(directory)
         self.keep_all = keep_all
         self._stale_removed = False
 
-    def _remove_stale_tmp(self) -> None:
+    def remove_stale_tmp(self) -> None:
         """Once per writer: delete the temporary files a killed save left in :attr:`directory` (regular files named
-        as :meth:`save` names them; other ``*.tmp`` entries are not umrl's and stay)."""
+        as :meth:`save` and safetensors name them, :attr:`_tmp_pattern`; other ``*.tmp`` entries are not umrl's and
+        stay)."""
         if not self._stale_removed and self.directory.is_dir():
             for stale in self.directory.iterdir():
                 if self._tmp_pattern.fullmatch(stale.name) and _is_regular_file(stale):
@@ -318,7 +399,7 @@ class Checkpointer:
 
     def save(self, state: Mapping[str, Any], step: int, config: Any = None) -> Path:
         """Write ``state`` for ``step`` atomically (a killed save never leaves a broken newest file)."""
-        self._remove_stale_tmp()
+        self.remove_stale_tmp()
         self.directory.mkdir(parents=True, exist_ok=True)
         path = self.directory / f"step_{step}.pt"
         tmp = path.with_suffix(".pt.tmp")
@@ -342,12 +423,15 @@ class Checkpointer:
             )
         return read_checkpoint(target)
 
-    def load_latest_valid(self) -> tuple[Path, Any]:
+    def load_latest_valid(self, check: Callable[[Any, Path], Any] | None = None) -> tuple[Path, Any]:
         """``(path, state)`` of the newest readable checkpoint, for ``resume=true``: an unreadable newer file is
         skipped with a warning naming it and, once a readable one is found, renamed ``<name>.unreadable`` (else it
         would stay the latest, the one loaders and the suite read); ``FileNotFoundError`` if there is none,
-        :class:`CheckpointError` if none can be read (nothing is renamed then)."""
-        self._remove_stale_tmp()
+        :class:`CheckpointError` if none can be read (nothing is renamed then). ``check(state, path)`` (a format's
+        :meth:`~umrl.checkpoints.CheckpointFormat.check`) returns the state or raises :class:`CheckpointError` for
+        content that cannot be the run's (non-finite weights, sizes the tensors do not have): that file is skipped
+        too."""
+        self.remove_stale_tmp()
         found = self.all()
         if not found:
             return self.load()  # raises FileNotFoundError saying where it looked
@@ -355,6 +439,8 @@ class Checkpointer:
         for path in reversed(found):
             try:
                 state = read_checkpoint(path)
+                if check is not None:
+                    state = check(state, path)
             except CheckpointError as e:
                 errors.append(str(e))
                 warnings.warn(f"skipping unreadable checkpoint {path}; trying the previous one. ({e})", stacklevel=2)
@@ -389,23 +475,18 @@ def resolve_checkpoint(path: str | os.PathLike) -> Path:
     path = Path(path)
     try:
         mode = os.stat(path).st_mode  # follows a symlink the user named, opens nothing
-    except OSError:
+    except FileNotFoundError:
         mode = None
+    except (OSError, ValueError) as e:  # a name too long, a loop of symlinks, a NUL byte: no file can be there
+        raise CheckpointError(f"cannot read checkpoint {str(path)!r} (not opened): "
+                              f"{e.strerror if isinstance(e, OSError) else e}.") from e
     if mode is not None and stat.S_ISREG(mode):
         return path
     if mode is not None and (not stat.S_ISDIR(mode) or Checkpointer._pattern.fullmatch(path.name)):
-        raise CheckpointError(f"{path} is not a regular checkpoint file ({_file_kind(mode)}); "
+        raise CheckpointError(f"{path} is not a regular checkpoint file ({file_kind(mode)}); "
                               "give a step_<N>.pt file or a run folder.")
     for directory in (path, path / "checkpoints"):
         latest = Checkpointer(directory).latest()
         if latest is not None:
             return latest
     raise FileNotFoundError(f"no checkpoint file at {path} (looked for step_*.pt in it and in {path / 'checkpoints'}).")
-
-
-def _file_kind(mode: int) -> str:
-    """What kind of file ``mode`` (an ``os.stat`` mode) is, in words."""
-    kinds = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
-             (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
-    return next((name for test, name in kinds if test(mode)), "not a regular file")
-

@@ -156,13 +156,18 @@ def check_str(name: str, value: Any) -> str:
     return value
 
 
+NAME_MAX_BYTES = 255
+"""The longest file or folder name (one path component, UTF-8 bytes) Linux file systems accept."""
+
+
 def check_name(name: str, value: Any) -> str:
     """``value`` if it is a file name (a run's or report's name), not a path: non-empty, without ``/``, ``\\`` or
-    NUL, and not ``.`` or ``..`` (such a name would write outside the folder it is meant for)."""
-    expected = "a name without path separators (not '.' or '..')"
+    NUL, not ``.`` or ``..`` (such a name would write outside the folder it is meant for), and at most
+    :data:`NAME_MAX_BYTES` bytes."""
+    expected = f"a name without path separators (not '.' or '..'), of at most {NAME_MAX_BYTES} bytes"
     if not isinstance(value, str):
         raise InvalidType(name, value, expected)
-    if value in ("", ".", "..") or any(c in value for c in "/\\\0"):
+    if value in ("", ".", "..") or any(c in value for c in "/\\\0") or len(value.encode()) > NAME_MAX_BYTES:
         raise InvalidValue(name, value, expected)
     return value
 
@@ -173,10 +178,15 @@ def check_seed(name: str, value: Any) -> int:
 
 
 def check_writable_dir(name: str, value: Any) -> str:
-    """``value`` if it is a path (``str``) to a directory this process can write into, or can create: every part of
-    it that exists is a directory and the deepest existing one is writable. Nothing is created."""
+    """``value`` if it is a path (``str``) to a directory this process can write into, or can create: every folder
+    name in it at most :data:`NAME_MAX_BYTES` bytes, every part of it that exists a directory and the deepest
+    existing one writable. Nothing is created."""
     check_str(name, value)
     path = Path(value).absolute()
+    too_long = [part for part in path.parts if len(part.encode()) > NAME_MAX_BYTES]
+    if too_long or "\0" in value:
+        raise InvalidValue(name, value, f"a path whose every folder name has at most {NAME_MAX_BYTES} bytes (no NUL)",
+                           note=f"{len(too_long[0].encode())} bytes in {too_long[0][:40]}..." if too_long else None)
     existing = next(p for p in (path, *path.parents) if p.exists())
     if not existing.is_dir():
         fault = "a file" if existing.is_file() else "not a directory"

@@ -14,9 +14,10 @@ from omegaconf import DictConfig, OmegaConf
 
 from umrl.configs import validate
 from umrl.configs.suite import SuiteConfig
-from umrl.launch import Job, directory_lock, make_launcher, run_jobs
+from umrl.folder_lock import lock_folder
+from umrl.launch import Job, make_launcher, run_jobs
 from umrl.metatest.cache import remove_stale_tmp, source_version, write_json_atomic
-from umrl.runtime import write_text_atomic
+from umrl.runtime import wandb_dir_default, write_text_atomic
 from umrl.suite.plan import plan, plan_ablation, plan_pretraining
 from umrl.suite.report import report, summarize_timings
 
@@ -54,7 +55,8 @@ def run_suite(cfg: DictConfig, *, log: Callable[[str], None] = print) -> str:
     :class:`~umrl.configs.ConfigError` before any job starts.
     """
     cfg = validate(cfg, SuiteConfig)
-    with directory_lock(cfg.output_dir):  # a second suite in the same output_dir refuses, naming this one's pid
+    with (lock_folder(cfg.output_dir),  # a second suite (or a trainer) in this output_dir is refused, naming this one
+          wandb_dir_default(cfg.output_dir)):  # every job's wandb run in <output_dir>/wandb unless WANDB_DIR is set
         return _run_suite(cfg, log)
 
 

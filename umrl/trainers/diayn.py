@@ -54,6 +54,7 @@ from umrl.configs import RESUME_ALLOW, check_resume, validate
 from umrl.configs.diayn import DIAYNConfig, resolve_seeds
 from umrl.envs import get_env_spec, make_env
 from umrl.envs.threads import torch_threads_beside_physics
+from umrl.folder_lock import claim_run_folder, releases_folder_on_error
 from umrl.modules.discriminator import make_discriminator
 from umrl.modules.sac import make_skill_actor, make_skill_qvalue
 from umrl.objectives.diayn import DIAYNLoss
@@ -72,6 +73,7 @@ from umrl.runtime import (
     set_rng_state,
 )
 from umrl.seed_replay import SeedReplay
+from umrl.signals import stop_requests
 from umrl.skill_coverage import coverage_metrics, evaluate_skills, plot_coverage
 from umrl.transforms.discriminator_reward import skill_reward
 from umrl.transforms.skill import SkillTransform
@@ -151,6 +153,9 @@ class DIAYNTrainer:
     uniformly random policy with each seed's initial discriminator (logged once under ``eval/random_*``), and with
     ``cfg.resume`` restores the latest program checkpoint (:meth:`load_state_dict`).
 
+    Construction first locks ``output_dir`` until :meth:`close` (:func:`umrl.folder_lock.claim_run_folder`: a folder
+    another run uses, or one holding checkpoints while ``cfg.resume`` is false, is refused before any work).
+
     :meth:`step` takes ``collector.frames_per_batch`` env steps per seed, then the updates they earn, and an
     evaluation when one is due; :meth:`checkpoint` saves the program and each seed's skills, then restarts the
     episodes (so an uninterrupted run continues exactly as a resumed one; with episodes of a whole number of
@@ -159,6 +164,7 @@ class DIAYNTrainer:
     Nothing process-wide is set (:mod:`umrl.process`).
     """
 
+    @releases_folder_on_error
     def __init__(self, cfg: DictConfig):
         self.cfg = cfg = validate(cfg, DIAYNConfig)
         self.seeds = seeds = resolve_seeds(cfg)
@@ -168,6 +174,8 @@ class DIAYNTrainer:
         self.checkpointer = Checkpointer(self.output_dir / "checkpoints", keep_all=cfg.checkpoint.keep_all)
         self.seed_checkpointers = [Checkpointer(seed_run_dir(self.output_dir, s) / "checkpoints",
                                                 keep_all=cfg.checkpoint.keep_all) for s in seeds]
+        self.folder_lock = claim_run_folder(self.output_dir, resume=cfg.resume,
+                                            checkpointers=[self.checkpointer, *self.seed_checkpointers])
         S, n = len(seeds), cfg.env.num_envs
 
         env_spec = get_env_spec(cfg.env.name)
@@ -216,7 +224,8 @@ class DIAYNTrainer:
                          "updates_per_frame": cfg.optim.updates_per_frame, "total_frames": cfg.collector.total_frames,
                          "log_every": cfg.log_every, "eval_every": cfg.eval.every}
 
-        self.logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, config=cfg, log_dir=self.output_dir)
+        self.logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, job_type="diayn", config=cfg,
+                                  log_dir=self.output_dir)
         self.eval_env.set_seed(seeds[0] + 10_000)
         with isolated_rng():
             torch.manual_seed(seeds[0])
@@ -418,33 +427,41 @@ class DIAYNTrainer:
         """Step to ``collector.total_frames`` (logging every ``log_every`` frames, checkpointing every
         ``checkpoint.every`` frames and at the end), then evaluate the final skills; returns the last training
         metrics, the final evaluation, the random policy's, the program ``checkpoint`` path and each seed's run
-        folder (``runs``)."""
+        folder (``runs``). A SIGTERM or SIGINT finishes the env step batch in progress, checkpoints it and raises
+        :class:`~umrl.signals.TrainingStopped` (:mod:`umrl.signals`); the episodes restart there, as at every
+        checkpoint, so the resumed run matches an uninterrupted one exactly when the stop falls on a
+        ``checkpoint.every`` boundary."""
         cfg, counters = self.cfg, self.counters
         progress = tqdm.tqdm(total=cfg.collector.total_frames, initial=counters["frames"], disable=not cfg.progress,
                              unit="frames", desc=f"DIAYN {cfg.env.name} seeds {list(self.seeds)}")
-        last, path = {}, None
-        while not self.done:
-            before = counters["frames"]
-            metrics = self.step()
-            progress.update(counters["frames"] - before)
-            if metrics:
-                self.log(metrics)
-                last.update(metrics)
-            due = counters["frames"] >= counters["next_checkpoint"]
-            if due or self.done:  # every checkpoint.every frames, and the end
-                counters["next_checkpoint"] += cfg.checkpoint.every * due
-                path = self.checkpoint()
-        progress.close()
+        last, path, saved = {}, self.checkpointer.latest(), counters["frames"]
+        with stop_requests() as stop:
+            while not self.done and not stop:
+                before = counters["frames"]
+                metrics = self.step()
+                progress.update(counters["frames"] - before)
+                if metrics:
+                    self.log(metrics)
+                    last.update(metrics)
+                due = counters["frames"] >= counters["next_checkpoint"]
+                if due or self.done:  # every checkpoint.every frames, and the end
+                    counters["next_checkpoint"] += cfg.checkpoint.every * due
+                    path, saved = self.checkpoint(), counters["frames"]
+            progress.close()
+            if stop and not self.done:
+                path = path if path is not None and saved == counters["frames"] else self.checkpoint()
+                raise stop.stopped(f"at {counters['frames']} of {cfg.collector.total_frames} frames per seed", path)
         final = self.evaluate("skill_coverage.png")
         self.log(final)
         return {**last, **final, **self.random_metrics, "checkpoint": str(path),
                 "runs": [str(seed_run_dir(self.output_dir, s)) for s in self.seeds]}
 
     def close(self) -> None:
-        """Close both envs and the logger."""
+        """Close both envs and the logger, and release ``output_dir``."""
         self.env.close()
         self.eval_env.close()
         close_logger(self.logger)
+        self.folder_lock.release()
 
 
 def train(cfg: DictConfig) -> dict:

@@ -42,6 +42,7 @@ from umrl.checkpoints.format import check_budget_left
 from umrl.configs import check_resume, validate
 from umrl.configs.vime import VIMEConfig
 from umrl.envs import get_env_spec, make_env
+from umrl.folder_lock import claim_run_folder, releases_folder_on_error
 from umrl.modules.bnn import BayesianDynamics
 from umrl.modules.policy import make_gaussian_policy
 from umrl.objectives.trpo_surrogate import ImportanceSamplingLoss
@@ -62,6 +63,7 @@ from umrl.runtime import (
     seed_everything,
     set_rng_state,
 )
+from umrl.signals import stop_requests
 from umrl.skill_coverage import cumulative_coverage, plot_coverage, state_coverage, visited_states
 from umrl.transforms.vime_bonus import VIMEBonus
 from umrl.validation import resolve_device
@@ -118,23 +120,28 @@ class VIMETrainer:
     resumed run finish bit-identical to an uninterrupted one). A config that differs from the checkpoint's beyond
     ``umrl.configs.RESUME_ALLOW`` is refused, and so is a checkpoint already at ``cfg.iterations``.
 
+    Construction first locks ``output_dir`` until :meth:`close` (:func:`umrl.folder_lock.claim_run_folder`: a folder
+    another run uses, or one holding checkpoints while ``cfg.resume`` is false, is refused before any work).
+
     :meth:`step` runs one iteration (module docstring) and returns its metrics; :meth:`train` steps to
     ``cfg.iterations``, logging, checkpointing (``cfg.checkpoint.every`` and the last) and drawing the coverage
     figure. Nothing process-wide is set (:mod:`umrl.process`).
     """
 
+    @releases_folder_on_error
     def __init__(self, cfg: DictConfig):
         self.cfg = cfg = validate(cfg, VIMEConfig)
         seed_everything(cfg.seed)
         self.device = device = torch.device(resolve_device("device", cfg.device))  # networks, replay, env outputs
         self.output_dir = Path(cfg.output_dir)
         self.checkpointer = Checkpointer(self.output_dir / "checkpoints", keep_all=cfg.checkpoint.keep_all)
+        self.folder_lock = claim_run_folder(self.output_dir, resume=cfg.resume, checkpointers=[self.checkpointer])
         self.env = make_env(cfg.env.name, cfg.env.num_envs, seed=cfg.seed, device=device, horizon=cfg.env.horizon,
                             backend=cfg.env.backend)
         obs_dim, act_dim = self.env.observation_spec["observation"].shape[-1], self.env.action_spec.shape[-1]
         # initialised on the CPU (the same weights on every device), then moved
         self.policy = make_gaussian_policy(obs_dim, act_dim, hidden=list(cfg.policy.hidden),
-                                           init_std=cfg.policy.init_std).to(device)
+                                           init_std=cfg.policy.init_std, seed=cfg.seed).to(device)
         dyn = cfg.dynamics
         self.dynamics = BayesianDynamics(obs_dim, act_dim, hidden=list(dyn.hidden), prior_std=dyn.prior_std,
                                          likelihood_std=dyn.likelihood_std, init_std=dyn.init_std).to(device)
@@ -144,7 +151,7 @@ class VIMETrainer:
                                median_window=cfg.bonus.median_window).to(device)
         t = cfg.trpo
         self.surrogate = ImportanceSamplingLoss(self.policy)
-        self.surrogate.make_value_estimator(gamma=t.gamma, lmbda=t.gae_lambda)
+        self.surrogate.make_value_estimator(gamma=cfg.advantage.gamma, lmbda=cfg.advantage.lmbda)
         self.trpo = TRPOStep(TensorDict.from_module(self.policy), max_kl=t.max_kl, damping=t.damping,
                              cg_iters=t.cg_iters, backtrack_ratio=t.backtrack_ratio, max_backtracks=t.max_backtracks)
         self.meta = {"env": cfg.env.name, "obs_dim": obs_dim, "act_dim": act_dim,
@@ -164,7 +171,8 @@ class VIMETrainer:
         if state is not None:
             self.load_state_dict(state)
             check_budget_left("iterations", cfg.iterations, self.counters["iteration"], "iterations", self.output_dir)
-        self.logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, config=cfg, log_dir=self.output_dir)
+        self.logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, job_type="vime", config=cfg,
+                                  log_dir=self.output_dir)
         self.start_time = time.perf_counter()
 
     @property
@@ -284,28 +292,37 @@ class VIMETrainer:
 
     def train(self) -> dict:
         """Step to ``cfg.iterations`` (logging, checkpointing every ``cfg.checkpoint.every`` and at the last), then
-        draw the coverage figure; returns the last metrics and the ``checkpoint`` path."""
-        cfg, metrics, path = self.cfg, {}, None
+        draw the coverage figure; returns the last metrics and the ``checkpoint`` path. A SIGTERM or SIGINT
+        finishes the iteration in progress, saves it and raises :class:`~umrl.signals.TrainingStopped`
+        (:mod:`umrl.signals`)."""
+        cfg, metrics = self.cfg, {}
+        path, saved = self.checkpointer.latest(), self.counters["iteration"]
         progress = tqdm.tqdm(total=cfg.iterations, initial=self.counters["iteration"], disable=not cfg.progress,
                              unit="it", desc=f"VIME {cfg.env.name}")
-        while not self.done:
-            metrics = self.step()
-            self.log(metrics)
-            progress.update(1)
-            progress.set_postfix({k.split("/")[-1]: f"{metrics[k]:.3g}" for k in
-                                  ("coverage/cells", "coverage/velocity_range", "dynamics/heldout_log_likelihood")
-                                  if k in metrics})
-            if self.counters["iteration"] % cfg.checkpoint.every == 0 or self.done:
-                path = self.save()  # and always the last iteration (the figure below draws no random numbers)
-        progress.close()
+        with stop_requests() as stop:
+            while not self.done and not stop:
+                metrics = self.step()
+                self.log(metrics)
+                progress.update(1)
+                progress.set_postfix({k.split("/")[-1]: f"{metrics[k]:.3g}" for k in
+                                      ("coverage/cells", "coverage/velocity_range", "dynamics/heldout_log_likelihood")
+                                      if k in metrics})
+                if self.counters["iteration"] % cfg.checkpoint.every == 0 or self.done:
+                    path, saved = self.save(), self.counters["iteration"]  # and always the last iteration (the
+                    # figure below draws no random numbers)
+            progress.close()
+            if stop and not self.done:
+                path = path if path is not None and saved == self.counters["iteration"] else self.save()
+                raise stop.stopped(f"after iteration {self.counters['iteration']} of {cfg.iterations}", path)
         if self.initial_states is not None and self.last_batch is not None:  # also on a resumed run
             self.plot_coverage()
         return {**metrics, "checkpoint": str(path)}
 
     def close(self) -> None:
-        """Close the env and finish the logger's run."""
+        """Close the env, finish the logger's run and release ``output_dir``."""
         self.env.close()
         close_logger(self.logger)
+        self.folder_lock.release()
 
 
 def train(cfg: DictConfig) -> dict:
