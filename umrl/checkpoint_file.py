@@ -20,12 +20,20 @@ Anything else (an arbitrary object) is refused when saving: a checkpoint holds d
 
 A file written by torch.save (umrl before :data:`FILE_FORMAT`) is refused with :class:`LegacyCheckpointError`:
 unpickling it could run code. ``python -m umrl.checkpoints.convert OLD NEW`` converts a trusted one.
+
+The hash is an integrity check, not a signature: whoever can write the file can recompute it. So :func:`read_state`
+treats every file as untrusted input: only a regular file is opened (a FIFO, device or folder is refused before any
+byte is read), tensors never exceed the file's bytes (safetensors checks every offset), numpy dtypes are numeric,
+and any failure while parsing (a tree nested past the recursion limit, a TensorDict whose batch size does not fit
+its tensors, a tag of the wrong type) is a :class:`CheckpointError` naming the file. What the state means (network
+sizes, finite weights) is checked by :class:`umrl.checkpoints.CheckpointFormat`.
 """
 from __future__ import annotations
 
 import hashlib
 import json
 import os
+import stat
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -36,7 +44,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 __all__ = ["FILE_FORMAT", "CheckpointError", "LegacyCheckpointError", "content_hash", "decode", "encode",
-           "read_state", "write_state"]
+           "file_kind", "read_state", "write_state"]
 
 FILE_FORMAT = "umrl.checkpoint.v2"
 """The container version (``v1``: the torch.save pickles before it); the recipes' own formats are inside the tree."""
@@ -44,10 +52,12 @@ FILE_FORMAT = "umrl.checkpoint.v2"
 _TAGS = ("__tensor__", "__ndarray__", "__npscalar__", "__tuple__", "__dict__", "__tensordict__", "__size__",
          "__dtype__")
 _HEADER_LIMIT = 100 * 2**20  # safetensors' own limit on the JSON header
+_NUMPY_KINDS = "biufc"  # bool, integers, floats, complex: what an array in a checkpoint may hold
 
 
 class CheckpointError(ValueError):
-    """A checkpoint file that cannot be read (truncated, corrupted, empty, of another format); names the file."""
+    """A checkpoint file that cannot be read or used (truncated, corrupted, empty, of another format, special,
+    malformed, or holding what umrl never writes); the message starts ``cannot read checkpoint <path> (<what>): ``."""
 
 
 class LegacyCheckpointError(CheckpointError):
@@ -108,9 +118,9 @@ def decode(tree: Any, tensors: Mapping[str, torch.Tensor]) -> Any:
     if tag in ("__tensor__", "__ndarray__"):
         if not isinstance(value, str) or value not in tensors:
             raise ValueError(f"the tree names a tensor {value!r} the file does not hold")
-        return tensors[value] if tag == "__tensor__" else tensors[value].numpy().astype(np.dtype(tree["dtype"]))
+        return tensors[value] if tag == "__tensor__" else tensors[value].numpy().astype(_numeric_dtype(tree["dtype"]))
     if tag == "__npscalar__":
-        return np.dtype(tree["dtype"]).type(value)
+        return _numeric_dtype(tree["dtype"]).type(value)
     if tag == "__dtype__":
         dtype = getattr(torch, str(value), None)
         if not isinstance(dtype, torch.dtype):
@@ -119,10 +129,26 @@ def decode(tree: Any, tensors: Mapping[str, torch.Tensor]) -> Any:
     if tag == "__tuple__":
         return tuple(decode(v, tensors) for v in value)
     if tag == "__size__":
-        return torch.Size([int(v) for v in value])
+        return torch.Size([_dimension(v) for v in value])
     if tag == "__dict__":
         return {decode(k, tensors): decode(v, tensors) for k, v in value}
-    return TensorDict({k: decode(v, tensors) for k, v in value.items()}, batch_size=tree["batch_size"])
+    return TensorDict({k: decode(v, tensors) for k, v in value.items()}, batch_size=[_dimension(v) for v in tree["batch_size"]])
+
+
+def _numeric_dtype(name: Any) -> np.dtype:
+    """The numpy dtype ``name`` if it is a number or bool; ``ValueError`` otherwise (an object or a string dtype
+    could make an array of arbitrary size out of a few bytes)."""
+    dtype = np.dtype(str(name))
+    if dtype.kind not in _NUMPY_KINDS:
+        raise ValueError(f"numpy dtype {name!r} is not numeric")
+    return dtype
+
+
+def _dimension(value: Any) -> int:
+    """``value`` if it is a whole number a tensor dimension can be (0 to 2⁶³ − 1); ``ValueError`` otherwise."""
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < 2**63:
+        raise ValueError(f"size entry {value!r} is not a tensor dimension")
+    return value
 
 
 def content_hash(tree_json: str, tensors: Mapping[str, torch.Tensor]) -> str:
@@ -137,11 +163,19 @@ def content_hash(tree_json: str, tensors: Mapping[str, torch.Tensor]) -> str:
 
 
 def write_state(state: Any, path: str | os.PathLike) -> None:
-    """Write ``state`` to ``path`` in :data:`FILE_FORMAT` (not atomically: the checkpointer writes a ``.tmp``)."""
+    """Write ``state`` to ``path`` in :data:`FILE_FORMAT` (not atomically: the checkpointer writes a ``.tmp``).
+
+    A failed write (a full disk, a file-size limit) removes what it wrote and raises ``OSError`` naming ``path``."""
     tree, tensors = encode(state)
     tree_json = json.dumps(tree, allow_nan=True, separators=(",", ":"))
     metadata = {"format": FILE_FORMAT, "tree": tree_json, "sha256": content_hash(tree_json, tensors)}
-    safetensors.torch.save_file(tensors, str(path), metadata=metadata)
+    try:
+        safetensors.torch.save_file(tensors, str(path), metadata=metadata)
+    except (OSError, safetensors.SafetensorError) as e:  # safetensors reports a failed write as its own error
+        Path(path).unlink(missing_ok=True)  # half a file only takes the space the next attempt needs
+        reason = e.strerror if isinstance(e, OSError) else str(e)
+        raise OSError(f"cannot write checkpoint {path}: {reason}; free space (or raise the file-size limit) and "
+                      "resume: the previous checkpoint is intact.") from e
 
 
 def _is_pickle(head: bytes) -> bool:
@@ -149,13 +183,45 @@ def _is_pickle(head: bytes) -> bool:
     return head.startswith(b"PK\x03\x04") or head[:1] == b"\x80"
 
 
+def file_kind(mode: int) -> str:
+    """What kind of file ``mode`` (an ``os.stat`` mode) is, in words."""
+    kinds = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
+             (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+    return next((name for test, name in kinds if test(mode)), "not a regular file")
+
+
+def _read_regular_file(path: Path) -> bytes:
+    """The bytes of ``path`` (a symlink is followed) if it is a regular file; :class:`CheckpointError` before
+    reading anything else (a FIFO would block, ``/dev/zero`` never ends) or when it cannot be opened;
+    ``FileNotFoundError`` if it does not exist."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)  # a FIFO opens at once instead of waiting for a writer
+    except FileNotFoundError:
+        raise
+    except OSError as e:
+        raise CheckpointError(f"cannot read checkpoint {path} (not opened): {e.strerror}.") from e
+    try:
+        mode = os.fstat(fd).st_mode  # of what was opened: no window between a check and the open
+        if not stat.S_ISREG(mode):
+            raise CheckpointError(f"cannot read checkpoint {path} ({file_kind(mode)}): not a regular file; "
+                                  "give a step_<N>.pt file or a run folder.")
+        with os.fdopen(os.dup(fd), "rb") as file:
+            return file.read()
+    except OSError as e:
+        raise CheckpointError(f"cannot read checkpoint {path} (not read): {e.strerror}.") from e
+    finally:
+        os.close(fd)
+
+
 def read_state(path: str | os.PathLike) -> dict:
     """The state :func:`write_state` wrote to ``path``, its hash checked; tensors on the CPU.
 
-    Raises :class:`CheckpointError` naming ``path`` for a truncated, corrupted (hash mismatch), empty or foreign
-    file, :class:`LegacyCheckpointError` for a torch.save pickle; ``FileNotFoundError`` if there is no file."""
+    Raises :class:`CheckpointError` naming ``path`` for anything but a readable regular file in
+    :data:`FILE_FORMAT` with a matching hash, whose tree decodes (truncated, corrupted, empty, foreign, special,
+    unreadable or malformed files alike), :class:`LegacyCheckpointError` for a torch.save pickle;
+    ``FileNotFoundError`` if there is no file."""
     path = Path(path)
-    data = path.read_bytes()
+    data = _read_regular_file(path)
 
     def fail(reason: str, error: type[CheckpointError] = CheckpointError) -> CheckpointError:
         return error(f"cannot read checkpoint {path} ({len(data)} bytes): {reason}")
@@ -177,5 +243,5 @@ def read_state(path: str | os.PathLike) -> dict:
         if content_hash(tree_json, tensors) != metadata["sha256"]:
             raise ValueError("content hash mismatch: the file was modified or corrupted after it was written")
         return decode(json.loads(tree_json), tensors)
-    except (ValueError, KeyError, TypeError, AttributeError, UnicodeDecodeError, safetensors.SafetensorError) as e:
+    except Exception as e:  # the file is untrusted input: whatever fails while parsing it is the file's fault
         raise fail(f"{type(e).__name__}: {e}; delete it to resume from the previous checkpoint.") from e

@@ -37,6 +37,7 @@ from umrl.envs.mujoco_batched import AntBatchedEnv
 from umrl.envs.tasks import get_task_family
 from umrl.metatest import AdaptationConfig, CellSpec, load_initialisation, meta_test
 from umrl.metatest.protocol import make_eval_env
+from umrl.metatest.provenance import resolve_recorded_path
 from umrl.objectives.policy_gradient import episode_lengths, episode_returns
 from umrl.rollout import collect
 from umrl.runtime import seed_everything
@@ -142,6 +143,8 @@ def main() -> None:
     baselines = {}
     for path in args.cells:
         cell = json.loads(path.read_text())
+        if cell.get("checkpoint"):  # recorded relative to the cell's file
+            cell["checkpoint"] = str(resolve_recorded_path(cell["checkpoint"], path))
         config = AdaptationConfig(**cell["protocol"])
         tasks = get_task_family(cell["env"]).eval_tasks(num_tasks(path, cell))
         for line in replay_cell(cell, config, tasks, steps, args.device):

@@ -41,18 +41,36 @@ import torch
 from tensordict.nn import TensorDictModule
 from torchrl.modules import ProbabilisticActor
 
-from umrl.checkpoints.format import CheckpointFormat
+from umrl.checkpoints.format import CheckpointFormat, Network
 from umrl.modules.discriminator import make_discriminator
 from umrl.modules.sac import make_skill_actor
 from umrl.runtime import Checkpointer
+from umrl.validation import check_writable_dir
+
+
+def _discriminator(meta: Mapping[str, Any]) -> TensorDictModule:
+    return make_discriminator(meta["obs_dim"], meta["num_skills"], hidden=meta["discriminator_hidden"],
+                              input_dims=meta.get("discriminator_input_dims"))  # absent before the key
+
+
+def _discriminator_widths(meta: Mapping[str, Any]) -> list:
+    input_dims = meta.get("discriminator_input_dims")
+    return [len(input_dims) if input_dims else meta["obs_dim"], *meta["discriminator_hidden"], meta["num_skills"]]
+
 
 DIAYN_FORMAT = CheckpointFormat(
     "umrl.diayn.v1", "DIAYN",
     meta_keys=("env", "obs_dim", "act_dim", "num_skills", "hidden", "discriminator_hidden",
                "discriminator_observation_key", "discriminator_input_dims"),
+    networks=(
+        Network("actor", lambda m: make_skill_actor(m["obs_dim"], m["num_skills"], m["act_dim"], hidden=m["hidden"]),
+                lambda m: [m["obs_dim"] + m["num_skills"], *m["hidden"], 2 * m["act_dim"]]),
+        Network("discriminator", _discriminator, _discriminator_widths),
+    ),
+    weights=("loss",),  # the single-run checkpoints written before multi-seed runs hold their SAC loss
 )
 DIAYN_SEEDS_FORMAT = CheckpointFormat("umrl.diayn_seeds.v1", "multi-seed DIAYN",
-                                      meta_keys=(*DIAYN_FORMAT.meta_keys, "seeds"))
+                                      meta_keys=(*DIAYN_FORMAT.meta_keys, "seeds"), weights=("loss",))
 
 SKILL_ENTRIES = ("actor", "discriminator", "counters")
 """What :func:`export_diayn_skills` keeps besides ``format``, ``meta`` and ``config``."""
@@ -110,8 +128,10 @@ def export_diayn_skills(source: str | os.PathLike, destination: str | os.PathLik
     The copy keeps :data:`SKILL_ENTRIES` (the skill policy, the discriminator, the counters) and drops the loss,
     optimisers, replay buffer, RNG and env states: :func:`load_discriminator`, :func:`load_skill_policy`, the MAML
     recipe's ``diayn_checkpoint`` and the suite's ``pretrain.diayn.reuse`` read it as they read the source;
-    ``resume=true`` cannot continue from it. Returns the written file.
+    ``resume=true`` cannot continue from it. Returns the written file. A ``destination`` that cannot be a writable
+    folder (a file, a name too long) is refused before the source is read.
     """
+    check_writable_dir("destination", str(destination))
     state = load_diayn_checkpoint(source)
     return DIAYN_FORMAT.save(Checkpointer(Path(destination) / "checkpoints"), state["counters"]["frames"],
                              state["meta"], state["config"], **{key: state[key] for key in SKILL_ENTRIES})
@@ -124,11 +144,8 @@ def load_discriminator(path: str | os.PathLike) -> tuple[TensorDictModule, int, 
     :class:`~umrl.transforms.discriminator_reward.DiscriminatorReward` for the UML-DIAYN task proposal.
     """
     state = load_diayn_checkpoint(path)
-    meta = state["meta"]
-    discriminator = make_discriminator(meta["obs_dim"], meta["num_skills"], hidden=meta["discriminator_hidden"],
-                                       input_dims=meta.get("discriminator_input_dims"))  # absent before the key
-    discriminator.load_state_dict(state["discriminator"])
-    return discriminator.eval().requires_grad_(False), meta["num_skills"], meta["obs_dim"]
+    discriminator = DIAYN_FORMAT.build(state, "discriminator")
+    return discriminator.eval().requires_grad_(False), state["meta"]["num_skills"], state["meta"]["obs_dim"]
 
 
 def load_skill_policy(path: str | os.PathLike) -> tuple[ProbabilisticActor, int, int]:
@@ -142,7 +159,4 @@ def load_skill_policy(path: str | os.PathLike) -> tuple[ProbabilisticActor, int,
 
 def skill_policy(state: Mapping[str, Any]) -> tuple[ProbabilisticActor, int, int]:
     """:func:`load_skill_policy`'s ``(actor, num_skills, obs_dim)`` from a checkpoint already loaded (and checked)."""
-    meta = state["meta"]
-    actor = make_skill_actor(meta["obs_dim"], meta["num_skills"], meta["act_dim"], hidden=meta["hidden"])
-    actor.load_state_dict(state["actor"])
-    return actor, meta["num_skills"], meta["obs_dim"]
+    return DIAYN_FORMAT.build(state, "actor"), state["meta"]["num_skills"], state["meta"]["obs_dim"]

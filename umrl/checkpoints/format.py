@@ -1,22 +1,40 @@
 """The one format/version check every checkpoint loader and every ``resume=true`` goes through.
 
-A umrl checkpoint is a dict (stored by :mod:`umrl.checkpoint_file`: data only, hash-checked) with ``"format"`` (a versioned name such as ``"umrl.maml.v1"``),
-``"meta"`` (what a loader needs to rebuild the networks) and format-specific entries. :class:`CheckpointFormat` names
-one format, the ``meta`` keys its loaders read, and does the saving (stamping ``"format"``) and the checked loading.
+A umrl checkpoint is a dict (stored by :mod:`umrl.checkpoint_file`: data only, hash-checked) with ``"format"`` (a
+versioned name such as ``"umrl.maml.v1"``), ``"meta"`` (what a loader needs to rebuild the networks) and
+format-specific entries. :class:`CheckpointFormat` names one format, the ``meta`` keys its loaders read and the
+networks it holds (:class:`Network`), and does the saving (stamping ``"format"``) and the checked loading.
+
+A file's hash proves nothing about who wrote it, so the checked loading treats the state as untrusted: every number
+in ``meta`` and every weight must be finite, the layer widths ``meta`` describes must be whole numbers in
+[1, :data:`MAX_WIDTH`] whose weights the file actually holds (checked before any network is built, so a few bytes
+cannot ask for gigabytes), and each network must load into the module ``meta`` describes. A failure is a
+:class:`~umrl.checkpoint_file.CheckpointError` naming the file and the key, and ``resume=true`` falls back to the
+previous checkpoint.
 """
 from __future__ import annotations
 
+import math
 import os
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
+import torch
+
+from umrl.checkpoint_file import CheckpointError
 from umrl.envs.registry import ENV_NAMES, check_observation_size
-from umrl.runtime import Checkpointer, read_checkpoint, resolve_checkpoint, to_container
+from umrl.runtime import Checkpointer, isolated_rng, read_checkpoint, resolve_checkpoint, to_container
 from umrl.validation import InvalidValue
 
-__all__ = ["CheckpointFormat", "check_budget_left"]
+__all__ = ["MAX_LAYERS", "MAX_WIDTH", "CheckpointFormat", "Network", "check_budget_left"]
+
+MAX_WIDTH = 2**20
+"""The largest layer width (observation, action, skill or hidden size) a checkpoint's ``meta`` may name."""
+MAX_LAYERS = 64
+"""The most layer widths (input, hidden layers, output) one network of a checkpoint may have."""
 
 
 def check_budget_left(key: str, budget: int, done: int, unit: str, run_dir: str | os.PathLike) -> None:
@@ -28,6 +46,46 @@ def check_budget_left(key: str, budget: int, done: int, unit: str, run_dir: str 
 
 
 @dataclass(frozen=True)
+class Network:
+    """A network a checkpoint holds as a state dict under ``entry``.
+
+    Attributes:
+        entry: the checkpoint's key, e.g. ``"policy"``.
+        build: ``build(meta)`` makes the module (untrained) the state dict loads into.
+        widths: ``widths(meta)``: its layer widths ``[in, *hidden, out]``; the products of neighbours are a lower
+            bound of the weights it holds, checked against the file before ``build`` allocates them.
+    """
+
+    entry: str
+    build: Callable[[Mapping[str, Any]], torch.nn.Module]
+    widths: Callable[[Mapping[str, Any]], Sequence[Any]]
+
+
+def _nonfinite(value: Any, key: str) -> Iterator[tuple[str, Any]]:
+    """``(key, value)`` of every non-finite float and every tensor holding one in ``value`` (nested mappings,
+    lists and tuples)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        yield key, value
+    elif isinstance(value, torch.Tensor) and value.is_floating_point() and not torch.isfinite(value).all():
+        yield key, f"a {list(value.shape)} tensor with {int((~torch.isfinite(value)).sum())} non-finite values"
+    elif isinstance(value, Mapping):
+        for k, v in value.items():
+            yield from _nonfinite(v, f"{key}.{k}")
+    elif isinstance(value, (list, tuple)):
+        for i, v in enumerate(value):
+            yield from _nonfinite(v, f"{key}[{i}]")
+
+
+def _numel(value: Any) -> int:
+    """How many tensor elements ``value`` (a state dict, possibly nested) holds."""
+    if isinstance(value, torch.Tensor):
+        return value.numel()
+    if isinstance(value, Mapping):
+        return sum(_numel(v) for v in value.values())
+    return 0
+
+
+@dataclass(frozen=True)
 class CheckpointFormat:
     """One checkpoint format.
 
@@ -35,11 +93,15 @@ class CheckpointFormat:
         name: the versioned tag stored under ``"format"``, e.g. ``"umrl.diayn.v1"``.
         what: the recipe's name for error messages, e.g. ``"DIAYN"``.
         meta_keys: keys every ``state["meta"]`` of this format carries (checked on save).
+        networks: the networks its loaders build (checked: sizes, finite weights, a state dict that loads).
+        weights: other entries whose tensors must be finite (e.g. a stacked loss's state dict).
     """
 
     name: str
     what: str
     meta_keys: tuple[str, ...]
+    networks: tuple[Network, ...] = ()
+    weights: tuple[str, ...] = ()
 
     def save(self, checkpointer: Checkpointer, step: int, meta: Mapping[str, Any], config: Any = None,
              **entries: Any) -> Path:
@@ -54,14 +116,63 @@ class CheckpointFormat:
 
     def check(self, state: Any, source: str | os.PathLike) -> dict:
         """Return ``state`` if it is a dict of this format whose networks fit their env's observation (where the env is
-        registered), else raise ``ValueError`` naming ``source``."""
+        registered), else raise ``ValueError`` naming ``source``; content that cannot be what umrl wrote (see the
+        module) raises its subclass :class:`~umrl.checkpoint_file.CheckpointError`."""
         if not isinstance(state, dict) or state.get("format") != self.name:
             found = state.get("format") if isinstance(state, dict) else type(state).__name__
             raise ValueError(f"{source} is not a {self.what} checkpoint (format {found!r}, expected {self.name!r}).")
-        meta = state.get("meta") or {}
+        meta = state.get("meta")
+        if not isinstance(meta, dict):
+            raise CheckpointError(f"{self._unusable(source)}meta is a {type(meta).__name__}; expected a dict.")
         if meta.get("env") in ENV_NAMES:
             check_observation_size(meta["env"], meta.get("obs_dim"), f"{self.what} checkpoint {source}")
+        checked = {"meta": meta, **{entry: state.get(entry) for entry in self._weight_entries()}}
+        for key, value in _nonfinite(checked, ""):
+            raise CheckpointError(f"{self._unusable(source)}{key[1:]} = {value}; expected finite values (a diverged "
+                                  "or tampered file; delete it to resume from the previous checkpoint).")
+        for network in self.networks:
+            if state.get(network.entry) is not None:
+                self._check_network(network, state, source)
         return state
+
+    def build(self, state: Mapping[str, Any], entry: str) -> torch.nn.Module:
+        """The network stored under ``entry`` of a checkpoint :meth:`check` accepted, with its weights loaded."""
+        network = next(n for n in self.networks if n.entry == entry)
+        module = network.build(state["meta"])
+        module.load_state_dict(state[entry])
+        return module
+
+    def _unusable(self, source: str | os.PathLike) -> str:
+        """The start of a :class:`~umrl.checkpoint_file.CheckpointError` about what ``source`` holds."""
+        return f"cannot read checkpoint {source} (a {self.what} checkpoint): "
+
+    def _weight_entries(self) -> tuple[str, ...]:
+        return (*(n.entry for n in self.networks), *self.weights)
+
+    def _check_network(self, network: Network, state: Mapping[str, Any], source: str | os.PathLike) -> None:
+        """Sizes first (nothing allocated), then a real build into which the state dict must load."""
+        where = f"{self._unusable(source)}{network.entry}"
+        try:
+            widths = list(network.widths(state["meta"]))
+        except (KeyError, TypeError, ValueError) as e:
+            raise CheckpointError(f"{where}: its meta does not describe the network ({type(e).__name__}: {e}).") from e
+        bad = [w for w in widths if isinstance(w, bool) or not isinstance(w, int) or not 1 <= w <= MAX_WIDTH]
+        if bad or not 2 <= len(widths) <= MAX_LAYERS:
+            shown = f"{widths[:MAX_LAYERS]}{' ...' if len(widths) > MAX_LAYERS else ''}"
+            raise CheckpointError(f"{where}: layer widths {shown} from its meta; expected 2 to {MAX_LAYERS} whole "
+                                  f"numbers in [1, {MAX_WIDTH}].")
+        needed = sum(a * b for a, b in pairwise(widths))
+        held = _numel(state[network.entry])
+        if needed > held:
+            raise CheckpointError(f"{where}: its meta describes layers {widths} of at least {needed} weights, but the "
+                                  f"file holds {held}; refused before building it.")
+        try:
+            with isolated_rng():  # building initialises weights: the caller's random stream must not move
+                self.build(state, network.entry)
+        except Exception as e:  # a state dict of other shapes or keys, or meta the constructor refuses
+            reason = " ".join(str(e).split())  # load_state_dict lists the mismatches on several lines
+            raise CheckpointError(f"{where} does not load into the network its meta describes "
+                                  f"({type(e).__name__}: {reason}).") from e
 
     def check_run(self, state: dict, name: str, source: str | os.PathLike, why: str, **expected: Any) -> dict:
         """Return ``state`` if its ``meta`` holds the ``expected`` values (``env="point_nav"``, ``proposal="diayn"``),
@@ -91,8 +202,7 @@ class CheckpointFormat:
         ``check_config(saved_config)`` runs first (recipes pass ``lambda saved: umrl.configs.check_resume(saved,
         cfg)``: a ``ConfigError`` listing the keys that differ beyond ``RESUME_ALLOW``); then ``ValueError`` if
         ``meta`` differs from the saved one."""
-        path, state = checkpointer.load_latest_valid()
-        state = self.check(state, path)
+        _, state = checkpointer.load_latest_valid(check=self.check)
         if check_config is not None:
             check_config(state["config"])
         mismatched = {k: (state["meta"].get(k), v) for k, v in meta.items() if state["meta"].get(k) != v}

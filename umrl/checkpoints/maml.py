@@ -25,7 +25,7 @@ from typing import Any
 import torch
 from torchrl.modules import ProbabilisticActor
 
-from umrl.checkpoints.format import CheckpointFormat
+from umrl.checkpoints.format import CheckpointFormat, Network
 from umrl.modules.policy import make_gaussian_policy
 from umrl.runtime import Checkpointer
 
@@ -33,6 +33,10 @@ MAML_FORMAT = CheckpointFormat(
     "umrl.maml.v1", "MAML",
     meta_keys=("env", "proposal", "obs_dim", "act_dim", "hidden", "init_std", "inner_lr", "num_inner_steps",
                "first_order", "num_tasks", "trajectories_per_task", "horizon", "num_skills"),
+    networks=(Network("policy",
+                      lambda m: make_gaussian_policy(m["obs_dim"], m["act_dim"], hidden=m["hidden"],
+                                                     init_std=m["init_std"]),
+                      lambda m: [m["obs_dim"], *m["hidden"], m["act_dim"]]),),
 )
 
 __all__ = ["MAML_FORMAT", "load_maml_checkpoint", "load_maml_policy", "maml_policy", "save_maml_checkpoint"]
@@ -68,7 +72,4 @@ def load_maml_policy(path: str | os.PathLike) -> tuple[ProbabilisticActor, float
 
 def maml_policy(state: Mapping[str, Any]) -> tuple[ProbabilisticActor, float]:
     """:func:`load_maml_policy`'s ``(policy, inner_lr)`` from a checkpoint already loaded (and checked)."""
-    meta = state["meta"]
-    policy = make_gaussian_policy(meta["obs_dim"], meta["act_dim"], hidden=meta["hidden"], init_std=meta["init_std"])
-    policy.load_state_dict(state["policy"])
-    return policy, float(meta["inner_lr"])
+    return MAML_FORMAT.build(state, "policy"), float(state["meta"]["inner_lr"])

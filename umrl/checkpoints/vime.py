@@ -29,7 +29,7 @@ from typing import Any
 import torch
 from torchrl.modules import ProbabilisticActor
 
-from umrl.checkpoints.format import CheckpointFormat
+from umrl.checkpoints.format import CheckpointFormat, Network
 from umrl.modules.bnn import BayesianDynamics
 from umrl.modules.policy import make_gaussian_policy
 from umrl.runtime import Checkpointer
@@ -38,6 +38,14 @@ VIME_FORMAT = CheckpointFormat(
     "umrl.vime.v1", "VIME",
     meta_keys=("env", "obs_dim", "act_dim", "policy_hidden", "policy_init_std", "dynamics_hidden", "prior_std",
                "likelihood_std"),
+    networks=(
+        Network("policy", lambda m: make_gaussian_policy(m["obs_dim"], m["act_dim"], hidden=m["policy_hidden"],
+                                                         init_std=m["policy_init_std"]),
+                lambda m: [m["obs_dim"], *m["policy_hidden"], m["act_dim"]]),
+        Network("dynamics", lambda m: BayesianDynamics(m["obs_dim"], m["act_dim"], hidden=m["dynamics_hidden"],
+                                                       prior_std=m["prior_std"], likelihood_std=m["likelihood_std"]),
+                lambda m: [m["obs_dim"] + m["act_dim"], *m["dynamics_hidden"], m["obs_dim"]]),
+    ),
 )
 
 __all__ = ["VIME_FORMAT", "load_vime_checkpoint", "load_vime_dynamics", "load_vime_policy", "save_vime_checkpoint",
@@ -88,17 +96,9 @@ def load_vime_policy(path: str | os.PathLike) -> ProbabilisticActor:
 
 def vime_policy(state: Mapping[str, Any]) -> ProbabilisticActor:
     """:func:`load_vime_policy`'s policy from a checkpoint already loaded (and checked)."""
-    meta = state["meta"]
-    policy = make_gaussian_policy(meta["obs_dim"], meta["act_dim"], hidden=meta["policy_hidden"],
-                                  init_std=meta["policy_init_std"])
-    policy.load_state_dict(state["policy"])
-    return policy
+    return VIME_FORMAT.build(state, "policy")
 
 
 def load_vime_dynamics(path: str | os.PathLike) -> BayesianDynamics:
     """The trained Bayesian dynamics model (with its running statistics), e.g. to score transitions."""
-    meta = (state := load_vime_checkpoint(path))["meta"]
-    dynamics = BayesianDynamics(meta["obs_dim"], meta["act_dim"], hidden=meta["dynamics_hidden"],
-                                prior_std=meta["prior_std"], likelihood_std=meta["likelihood_std"])
-    dynamics.load_state_dict(state["dynamics"])
-    return dynamics
+    return VIME_FORMAT.build(load_vime_checkpoint(path), "dynamics")

@@ -1,6 +1,12 @@
-"""What a results file needs to be reproduced: the commit (and whether the tree was dirty), the command, the hardware.
+"""What a results file needs to be reproduced: the commit (and whether the tree was dirty), the command, the hardware,
+and the inputs it read, named so that the file means the same on another machine.
 
 :func:`provenance` returns plain strings, so it can be written into ``summary.md`` or a JSON file as it is.
+:func:`relative_path` is how a result file names a file it was made from (a cell's ``"checkpoint"``): relative to
+the folder of the result file itself, not to the repository or the current directory, so the name holds no machine
+path and still resolves when the results and the runs they read are moved or committed together, inside the
+repository or outside it (``results/point_nav/meta_test_ref/seed0/oracle.json`` names
+``../../oracle_ref/seed0``). Read one back with :func:`resolve_recorded_path`.
 """
 from __future__ import annotations
 
@@ -26,6 +32,19 @@ def git_commit(repo: str | os.PathLike = REPO) -> str:
     except (OSError, subprocess.CalledProcessError):
         return "unknown (not a git checkout)"
     return f"{sha}-dirty" if dirty else sha
+
+
+def relative_path(path: str | os.PathLike, result_file: str | os.PathLike) -> str:
+    """``path`` (absolute, or relative to the current directory) relative to the folder of ``result_file``, with
+    ``/`` separators: ``relative_path("results/pn/oracle_ref/seed0", "results/pn/meta_test/seed0/oracle.json")`` is
+    ``"../../oracle_ref/seed0"``."""
+    folder = os.path.dirname(os.path.abspath(result_file))
+    return Path(os.path.relpath(os.path.abspath(path), folder)).as_posix()
+
+
+def resolve_recorded_path(recorded: str, result_file: str | os.PathLike) -> Path:
+    """The file a result file names with :func:`relative_path` (an absolute path, as older files hold, is kept)."""
+    return Path(result_file).parent / recorded
 
 
 def cpu_model() -> str:
