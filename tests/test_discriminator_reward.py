@@ -1,11 +1,13 @@
-"""DiscriminatorReward: r = log D(z|s') + log K, no grad, relabelling with the current discriminator."""
+"""DiscriminatorReward: r = log D(z|s') + log K, no grad, relabelling with the current discriminator; the env's own
+reward kept under ("next", "env_reward"); declared keys."""
 import math
 
 import pytest
 import torch
 from torchrl.envs.utils import check_env_specs
 
-from umrl.envs import make_env
+from umrl.envs import make_env, make_task_env
+from umrl.envs.mujoco_gym import EnvRewardToKey
 from umrl.modules.discriminator import discriminator_logits, make_discriminator
 from umrl.transforms.discriminator_reward import DiscriminatorReward
 from umrl.transforms.skill import SkillTransform
@@ -64,6 +66,73 @@ def test_forward_relabels_with_current_discriminator():
     torch.testing.assert_close(td["next", "reward"], fresh)
     assert not torch.allclose(fresh, stale)
     torch.testing.assert_close(td["next", "env_reward"], env_reward)
+
+
+GOALS = torch.tensor([[1.0, 0.5], [-2.0, 1.0], [0.0, -1.5], [3.0, 3.0]])
+
+
+def goal_reward_env(discriminator, *keep_first):
+    """point_nav rewarded by goals (a nonzero env reward), then ``keep_first`` transforms, skills and the skill
+    reward."""
+    env = make_task_env("point_nav", GOALS, seed=0)
+    for transform in (*keep_first, SkillTransform(K), DiscriminatorReward(discriminator, K)):
+        env.append_transform(transform)
+    return env
+
+
+def goal_rewards(td):
+    """The goal task's reward of each transition, -||s' - g||, recomputed from the rollout."""
+    return -torch.linalg.vector_norm(td["next", "observation"] - td["task"], dim=-1, keepdim=True)
+
+
+def test_env_reward_is_kept_under_its_key_and_the_skill_reward_replaces_it():
+    disc = make_discriminator(2, K, hidden=(16,), seed=0)
+    env = goal_reward_env(disc)
+    check_env_specs(env)
+    td = env.rollout(5)
+    torch.testing.assert_close(td["next", "env_reward"], goal_rewards(td))
+    torch.testing.assert_close(td["next", "reward"], by_hand(disc, td["observation"], td["skill"]))
+    assert td["next", "env_reward"].abs().min() > 0 and not torch.allclose(td["next", "reward"], td["next", "env_reward"])
+    assert torch.equal(env.reset()["env_reward"], torch.zeros(4, 1))
+    assert env.reward_keys == ["reward"]  # one reward for the losses; the env's is an observation entry
+
+
+def test_an_env_that_already_keeps_its_reward_keeps_it():
+    """umrl's MuJoCo envs write their reward to "env_reward" and leave "reward" at zero (EnvRewardToKey): the
+    transform must not overwrite the env's reward with that zero."""
+    disc = make_discriminator(2, K, hidden=(16,), seed=0)
+    td = goal_reward_env(disc, EnvRewardToKey()).rollout(5)
+    torch.testing.assert_close(td["next", "env_reward"], goal_rewards(td))
+    torch.testing.assert_close(td["next", "reward"], by_hand(disc, td["observation"], td["skill"]))
+
+
+def test_relabelling_a_batch_without_env_reward_moves_its_reward_there_once():
+    disc = make_discriminator(2, K, hidden=(16,), seed=0)
+    td = reward_env(disc).rollout(4).reshape(-1).exclude(("next", "env_reward"))
+    env_reward = torch.randn(td.shape[0], 1)
+    td["next", "reward"] = env_reward.clone()
+    transform = DiscriminatorReward(disc, K)
+    transform(td)
+    torch.testing.assert_close(td["next", "env_reward"], env_reward)
+    transform(td)  # a second relabelling leaves the kept reward alone
+    torch.testing.assert_close(td["next", "env_reward"], env_reward)
+    torch.testing.assert_close(td["next", "reward"], by_hand(disc, td["observation"], td["skill"]))
+
+
+def test_keys_are_declared():
+    disc = make_discriminator(2, K, hidden=(8,))
+    transform = DiscriminatorReward(disc, K, observation_key=("next", "observation"))
+    assert transform.in_keys == [("next", "observation"), "skill", "reward"]
+    assert transform.out_keys == ["reward", "env_reward"]
+    assert repr(transform) == ("DiscriminatorReward(num_skills=6, in_keys=[('next', 'observation'), 'skill', "
+                               "'reward'], out_keys=['reward', 'env_reward'])")
+    custom = DiscriminatorReward(disc, K, reward_key="skill_reward", env_reward_key="task_reward")
+    assert custom.out_keys == ["skill_reward", "task_reward"]
+    env = make_task_env("point_nav", GOALS, seed=0).append_transform(SkillTransform(K)).append_transform(custom)
+    check_env_specs(env)
+    td = env.rollout(3)
+    torch.testing.assert_close(td["next", "reward"], goal_rewards(td))  # not the transform's key: untouched
+    torch.testing.assert_close(td["next", "skill_reward"], by_hand(disc, td["observation"], td["skill"]))
 
 
 def test_seeded_random_discriminator_is_reproducible_and_keeps_global_rng():

@@ -6,6 +6,10 @@ A ``.wandb`` file is a 7-byte header (``:W&B``, magic, version) then LevelDB-log
 shorter than a chunk header is zero padding."""
 from __future__ import annotations
 
+import json
+import re
+import subprocess
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,29 +48,38 @@ def records(path: str | Path) -> list[Record]:
 
 @dataclass
 class OfflineRun:
-    """What one offline run holds: its name, config keys and values (JSON text), each logged metric's values, and
-    whether it was finished (its exit record is written)."""
+    """What one offline run holds: its name, group and job type, config keys and values (JSON text), each logged
+    metric's values, the files of its logged tables (``{key: path under files/}``), and whether it was finished (its
+    exit record is written)."""
 
     path: Path
     name: str = ""
+    group: str = ""
+    job_type: str = ""
     finished: bool = False
     config: dict[str, str] = field(default_factory=dict)
     metrics: dict[str, list[str]] = field(default_factory=dict)
+    tables: dict[str, str] = field(default_factory=dict)
 
     @property
     def num_values(self) -> int:
         return sum(len(v) for v in self.metrics.values())
 
+    def table(self, key: str) -> dict:
+        """The table logged under ``key``: ``{"columns": [...], "data": [[...], ...]}`` (wandb's table file)."""
+        return json.loads((self.path / "files" / self.tables[key]).read_text())
+
 
 def read_run(run_dir: str | Path, wait_s: float = 30.0) -> OfflineRun:
     """The :class:`OfflineRun` of an ``offline-run-*`` directory.
 
-    ``run.finish()`` returns before wandb-core has written the run's file (the service closes it asynchronously),
-    so this waits up to ``wait_s`` seconds for the exit record; a run still without one is returned unfinished."""
-    (file,) = Path(run_dir).glob("run-*.wandb")
+    ``run.finish()`` returns before wandb-core has written the run's file (the service creates and closes it
+    asynchronously), so this waits up to ``wait_s`` seconds for the file and its exit record; a run still without
+    one is returned unfinished."""
     deadline = time.monotonic() + wait_s
     while True:
-        run = _parse_run(Path(run_dir), records(file))
+        files = list(Path(run_dir).glob("run-*.wandb"))
+        run = _parse_run(Path(run_dir), records(files[0]) if files else [])
         if run.finished or time.monotonic() > deadline:
             return run
         time.sleep(0.05)
@@ -77,20 +90,40 @@ def _parse_run(run_dir: Path, items: list[Record]) -> OfflineRun:
     for record in items:
         kind = record.WhichOneof("record_type")
         if kind == "run":
-            run.name = record.run.display_name
+            run.name, run.group, run.job_type = record.run.display_name, record.run.run_group, record.run.job_type
             run.config.update({item.key: item.value_json for item in record.run.config.update})
         elif kind == "config":
             run.config.update({item.key: item.value_json for item in record.config.update})
         elif kind == "exit":
             run.finished = True
         elif kind == "history":
+            media: dict[str, dict[str, str]] = {}  # a table is logged as nested items {key: {_type, path, ...}}
             for item in record.history.item:
+                if not item.key and len(item.nested_key) > 1:
+                    media.setdefault("/".join(item.nested_key[:-1]), {})[item.nested_key[-1]] = item.value_json
+                    continue
                 key = item.key or "/".join(item.nested_key)
                 if not key.startswith("_"):
                     run.metrics.setdefault(key, []).append(item.value_json)
+            run.tables.update({key: json.loads(fields["path"]) for key, fields in media.items()
+                               if json.loads(fields.get("_type", "null")) == "table-file"})
     return run
 
 
 def offline_runs(directory: str | Path) -> list[OfflineRun]:
     """Every offline run under ``directory`` (searched recursively), oldest first."""
     return [read_run(p) for p in sorted(Path(directory).rglob("offline-run-*")) if p.is_dir()]
+
+
+def sync_dry_run(folder: str | Path) -> set[str]:
+    """The run ids ``wandb sync --dry-run``, run in ``folder``, would upload (what a user publishing an output tree
+    gets: wandb looks in ``folder/wandb``)."""
+    wandb_cli = Path(sys.executable).with_name("wandb")
+    out = subprocess.run([str(wandb_cli), "sync", "--dry-run"], cwd=folder, capture_output=True, text=True, timeout=120,
+                         check=True)
+    return set(re.findall(r"run-([a-z0-9]+)\.wandb", out.stdout + out.stderr))
+
+
+def run_id(run: OfflineRun) -> str:
+    """The id in an ``offline-run-<date>_<time>-<id>`` folder name."""
+    return run.path.name.rsplit("-", 1)[1]

@@ -19,17 +19,29 @@ from umrl.metatest import (
     arm_label,
     arm_styles,
     baseline_arms,
+    bootstrap_ci,
     curves_from_rows,
+    iqm,
     plot_ablation,
     plot_adaptation_curves,
     pretraining_note,
     provenance,
     read_rows,
+    run_matrix,
     suite_summary,
     summary_table,
     write_rows,
 )
-from umrl.runtime import close_logger, log_image, log_metrics, make_logger, to_container, write_text_atomic
+from umrl.runtime import (
+    close_logger,
+    log_band,
+    log_image,
+    log_metrics,
+    log_table,
+    make_logger,
+    to_container,
+    write_text_atomic,
+)
 
 __all__ = ["report", "summarize_timings"]
 
@@ -50,13 +62,19 @@ def report(cfg: DictConfig, group: str, timings: Mapping[str, float], cells: Seq
     settings = OmegaConf.to_yaml(OmegaConf.create({k: to_container(cfg)[k] for k in (
         "envs", "methods", "seeds", "pretrain_seeds", "num_tasks", "protocol", "adam_lr", "sgd_lr", "sweep",
         "device")}))
-    lrs = {}
+    lrs, before = {}, {}
     for p in cells:
         if p.with_suffix(".json").exists():
             info = json.loads(p.with_suffix(".json").read_text())
             label = arm_label(info["method"], info.get("lr_schedule", "constant"))
             lrs.setdefault((info["env"], label), set()).add(round(info["lr"], 6))
-    lr_lines = [f"- {env} / {method}: lr {sorted(v)}" for (env, method), v in sorted(lrs.items())]
+            if "skill_choice_env_steps" in info:
+                before.setdefault((info["env"], label), set()).add(info["skill_choice_env_steps"])
+    edges = {min(cfg.sweep.lrs), max(cfg.sweep.lrs)} if cfg.sweep.enabled else set()
+    lr_lines = [f"- {env} / {method}: lr {sorted(v)}" + (" (an edge of sweep.lrs: the best may lie beyond)"
+                                                          if v & edges else "") for (env, method), v in sorted(lrs.items())]
+    lr_lines += [f"- {env} / {method}: {', '.join(map(str, sorted(v)))} env steps per task before k = 0 (choosing "
+                 "its skill), on no curve" for (env, method), v in sorted(before.items())]
     time_lines = [f"- {k}: {v:.0f} s" for k, v in timings.items()] + [
         "", "(Jobs run with launcher.workers in parallel; per-job times of every invocation are in timings.json.)"]
     ablation_rows = read_rows([Path(p) for p in ablation if Path(p).exists()])
@@ -76,26 +94,47 @@ def report(cfg: DictConfig, group: str, timings: Mapping[str, float], cells: Seq
         list(cfg.seeds), pretrain_seeds(cfg)), lr_lines=lr_lines, time_lines=time_lines, settings_yaml=settings,
         provenance=record, ablation=ablation_md)
     write_text_atomic(out / "summary.md", markdown)
-    _log_to_wandb(cfg, group, curves, records, out)
+    _log_to_wandb(cfg, group, curves, rows, records, out)
     return markdown
 
 
-def _log_to_wandb(cfg: DictConfig, group: str, curves, records, out: Path) -> None:
-    """One run per (env, arm) of ``curves`` (the report's) with the mean curve and summary metrics, plus a report
-    run with the figures; wandb runs land in ``out/wandb`` (or ``$WANDB_DIR/wandb``)."""
-    logger_cfg = {**to_container(cfg.logger), "group": group}
+def _log_to_wandb(cfg: DictConfig, group: str, curves, rows: Sequence[Mapping], records: Sequence[Mapping],
+                  out: Path) -> None:
+    """wandb runs in the suite's ``group``, each with the suite's whole config: one ``meta_test`` run per (env, arm)
+    of ``curves`` (config also ``method``, ``env``) and one ``report`` run.
+
+    An arm's run holds its mean curve per k as scalars (``meta_test/return`` and its bootstrap CI
+    ``meta_test/return_low`` / ``_high``), the table ``meta_test/curve`` (``k``, ``iqm``, ``iqm_low``, ``iqm_high``
+    over its (seed, task) runs ``rows``) with its line plot ``meta_test/curve_plot``, the IQMs of ``records``
+    (:func:`~umrl.metatest.summary_table`'s) as ``summary/<metric>_iqm`` and its records as the table ``results``.
+    The report run holds every record (``results``) and the figures. Runs land in ``<out>/wandb`` (the suite sets
+    ``WANDB_DIR`` unless the user did)."""
+    config = to_container(cfg)
+    logger_cfg = {**config["logger"], "group": group}
+    columns = list(dict.fromkeys(key for record in records for key in record))
+
+    def table(selected: Sequence[Mapping]) -> list[list]:
+        return [[record.get(key) for key in columns] for record in selected]
+
     for env, methods in curves.items():
         for method, curve in methods.items():
-            logger = make_logger(logger_cfg, exp_name=f"{method}_{env}".replace(" ", "_"),
-                                 config={"method": method, "env": env}, log_dir=out)
+            logger = make_logger(logger_cfg, exp_name=f"{method}_{env}".replace(" ", "_"), job_type="meta_test",
+                                 config={**config, "method": method, "env": env}, log_dir=out)
             for k, (m, lo, hi) in enumerate(zip(curve.mean, curve.low, curve.high)):
                 log_metrics(logger, {"meta_test/return": m, "meta_test/return_low": lo,
                                      "meta_test/return_high": hi}, step=k)
-            summary = {f"summary/{r['metric']}_iqm": r["iqm"] for r in records
-                       if r["env"] == env and r["method"] == method}
-            log_metrics(logger, summary, step=len(curve.mean) - 1)
+            mine = [r for r in records if r["env"] == env and r["method"] == method]
+            log_metrics(logger, {f"summary/{r['metric']}_iqm": r["iqm"] for r in mine}, step=len(curve.mean) - 1)
+            per_k = run_matrix(rows, env=env, method=method).T  # [K + 1, runs]
+            bands = [bootstrap_ci(values, iqm) for values in per_k]  # summary_table's IQM CIs, at every k
+            log_band(logger, "meta_test/curve", list(range(len(per_k))),
+                     {"iqm": [float(iqm(values)) for values in per_k], "iqm_low": [low for low, _ in bands],
+                      "iqm_high": [high for _, high in bands]},
+                     xname="k", title=f"{method} on {env}: return IQM and 95% CI after k adaptation steps")
+            log_table(logger, "results", columns, table(mine))
             close_logger(logger)
-    logger = make_logger(logger_cfg, exp_name="report", config=to_container(cfg), log_dir=out)
+    logger = make_logger(logger_cfg, exp_name="report", job_type="report", config=config, log_dir=out)
+    log_table(logger, "results", columns, table(records))
     for name in ("curves", "ablation"):
         if (out / f"{name}.png").exists():
             log_image(logger, f"report/{name}", out / f"{name}.png", step=0)
