@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 from umrl.configs.validate import (
     boolean,
+    checked,
     choice,
     device,
     group,
@@ -17,7 +18,8 @@ from umrl.configs.validate import (
     string,
     writable_dir,
 )
-from umrl.envs import BACKENDS, ENV_NAMES
+from umrl.envs import BACKENDS
+from umrl.envs.user_envs import check_env_name, import_env_module
 from umrl.runtime import LOGGER_BACKENDS
 from umrl.validation import InvalidValue
 
@@ -26,9 +28,11 @@ LOGGER_MODES = ("offline", "online", "disabled")
 
 @dataclass
 class EnvConfig:
-    """``name`` (one of :data:`umrl.envs.ENV_NAMES`), ``horizon`` (steps per episode, >= 1)."""
+    """``module`` (null, or a module or ``.py`` file imported first: it may register envs), ``name`` (one of
+    :data:`umrl.envs.ENV_NAMES`, read after ``module``), ``horizon`` (steps per episode, >= 1)."""
 
-    name: str = choice(ENV_NAMES)
+    module: str | None = checked(import_env_module)  # before name: the registry it reads may grow
+    name: str = checked(check_env_name)
     horizon: int = integer(min=1)
 
 
@@ -86,6 +90,14 @@ class PolicyConfig:
 
     hidden: list[int] = int_list(min=1, min_len=1)
     init_std: float = number(gt=0)
+
+
+@dataclass
+class GAEConfig:
+    """Advantages by GAE: discount ``gamma`` and ``lmbda`` (TorchRL's name for GAE's λ), each in [0, 1]."""
+
+    gamma: float = number(ge=0, le=1)
+    lmbda: float = number(ge=0, le=1)
 
 
 @dataclass

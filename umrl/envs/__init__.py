@@ -3,7 +3,8 @@
 ``make_env(name, num_envs, seed=...)`` returns a ``TransformedEnv`` with batch size ``[num_envs]`` whose last
 transform is a ``StepCounter`` enforcing the horizon (``"step_count"`` ``[B, 1]``). ``make_task_env`` adds a
 :class:`~umrl.envs.task_reward.TaskReward` with one hand-designed task per env copy. The envs are those of
-:data:`ENV_NAMES`: the built-in ones (:mod:`umrl.envs.builtin`) and any added with :func:`register_env`.
+:data:`ENV_NAMES`: the built-in ones (:mod:`umrl.envs.builtin`) and any added with :func:`register_env`, e.g. a
+gymnasium env with a task family of its user's (:func:`umrl.envs.gym_cmp.gym_env_spec`, docs/own_env.md).
 """
 from __future__ import annotations
 

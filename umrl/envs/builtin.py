@@ -1,12 +1,12 @@
 """The built-in environments, one :class:`~umrl.envs.registry.EnvSpec` record each (docs/protocol.md settings).
 
-==============  =======  =======  ======  ====================  ===========================================
-env             obs_dim  act_dim  skills  tasks                 coverage
-==============  =======  =======  ======  ====================  ===========================================
-point_nav       2        2        50      goals U[-0.5, 0.5]²   final ``"position"``, 0.1 cells
-half_cheetah    17       6        20      speeds U[0, 2]        mean ``"x_velocity"``
-ant             105      8        20      goals U[-3, 3]²       final ``"xy_position"``, 0.25 cells
-==============  =======  =======  ======  ====================  ===========================================
+==============  =======  =======  ======  =========  ====================  ===========================================
+env             obs_dim  act_dim  skills  DIAYN net  tasks                 coverage
+==============  =======  =======  ======  =========  ====================  ===========================================
+point_nav       2        2        50      2 × 32     goals U[-0.5, 0.5]²   final ``"position"``, 0.1 cells
+half_cheetah    17       6        20      2 × 300    speeds U[0, 2]        mean ``"x_velocity"``
+ant             105      8        20      2 × 300    goals U[-3, 3]²       final ``"xy_position"``, 0.25 cells
+==============  =======  =======  ======  =========  ====================  ===========================================
 
 ant is gymnasium's ``Ant-v5`` (its model, dynamics and termination) with the MAML reference code's goal reward
 (:func:`umrl.envs.tasks.ant_goal_reward`) and gymnasium's default observation, x-y excluded as the paper states
@@ -53,7 +53,7 @@ POINT_NAV = register_env(EnvSpec(
     name="point_nav", make=make_point_nav, obs_dim=2, act_dim=2, num_skills=50,
     task_family=TaskFamily("point_nav", task_dim=2, low=-0.5, high=0.5, reward_fn=goal_distance_reward,
                            success_fn=goal_within(0.01)),
-    physics_keys={"position": 2}, coverage_key="position", coverage_cell=0.1,
+    physics_keys={"position": 2}, coverage_key="position", coverage_cell=0.1, diayn_hidden=(32, 32),
 ))
 HALF_CHEETAH = register_env(EnvSpec(
     name="half_cheetah", make=mujoco_maker("half_cheetah"), obs_dim=17, act_dim=6, num_skills=20,

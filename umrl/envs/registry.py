@@ -49,6 +49,9 @@ class EnvSpec:
             (ben-eysenbach/sac ``examples/mujoco_all_diayn.py``: 1000 on the MuJoCo envs, 100 for its point env).
         diayn_frames: DIAYN's env-step budget in that reference run (``n_epochs × epoch_length``: 10,000 × 1000 =
             10 M on HalfCheetah and Ant, 50 × 1000 = 50 k for its point env); the recipe's default.
+        diayn_hidden: hidden widths of DIAYN's actor, Q-networks and discriminator in that reference run
+            (``layer_size`` × 2: 300 by default, 32 for its point env, ``ENV_PARAMS['point']``); UML-random's
+            discriminator has the same widths (DIAYN's discriminator left at its random initialisation).
         maml_iterations: MAML meta-iterations of the reference run (cbfinn/maml_rl: ``maml_trpo_point.py`` runs 100;
             ``test_maml_cheetah.py`` / ``test_maml_ant.py`` load iterations 475 / 375); the recipe's default.
     """
@@ -67,6 +70,7 @@ class EnvSpec:
     num_eval_tasks: int = 20
     diayn_horizon: int = 100
     diayn_frames: int = 50_000
+    diayn_hidden: tuple[int, ...] = (300, 300)
     maml_iterations: int = 100
 
     def __post_init__(self) -> None:
@@ -75,8 +79,11 @@ class EnvSpec:
                     "diayn_horizon": self.diayn_horizon, "diayn_frames": self.diayn_frames,
                     "maml_iterations": self.maml_iterations}
         bad = {k: v for k, v in positive.items() if not (isinstance(v, int) and v > 0)}
+        if not self.diayn_hidden or not all(isinstance(w, int) and w > 0 for w in self.diayn_hidden):
+            bad["diayn_hidden"] = self.diayn_hidden
         if bad:
-            raise ValueError(f"EnvSpec {self.name!r}: these fields must be positive integers, got {bad}.")
+            raise ValueError(f"EnvSpec {self.name!r}: these fields must be positive integers (diayn_hidden: a "
+                             f"non-empty tuple of them), got {bad}.")
         if self.coverage_key not in self.physics_keys:
             raise ValueError(f"EnvSpec {self.name!r}: coverage_key {self.coverage_key!r} is not one of its "
                              f"physics_keys {sorted(self.physics_keys)}.")

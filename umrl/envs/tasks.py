@@ -27,7 +27,7 @@ import torch
 from tensordict import TensorDictBase
 
 from umrl.envs.registry import get_env_spec
-from umrl.validation import InvalidType, InvalidValue, check_finite
+from umrl.validation import InvalidType, InvalidValue, check_finite, describe
 
 #: Seed of the held-out evaluation tasks; never used to draw meta-training tasks.
 EVAL_TASK_SEED = 20190531
@@ -38,6 +38,15 @@ EVAL_TASK_SEED = 20190531
 RewardFn = Callable[[TensorDictBase, torch.Tensor, torch.Tensor], torch.Tensor]
 #: ``success(next_td, task) -> [B, 1]`` bool: where an episode ends early because the task is solved.
 SuccessFn = Callable[[TensorDictBase, torch.Tensor], torch.Tensor]
+#: ``sampler(n, generator) -> [n, task_dim]``: ``n`` tasks drawn with ``generator`` (a ``torch.Generator`` or None).
+SamplerFn = Callable[[int, "torch.Generator | None"], torch.Tensor]
+
+FUNCTION_SIGNATURES = {
+    "reward_fn": "a function reward(next_td, action, task) -> [B, 1] (the task reward of a batch of steps)",
+    "success_fn": "None or a function success(next_td, task) -> bool [B, 1]",
+    "sampler": "None or a function sampler(n, generator) -> [n, task_dim] drawing only from generator",
+}
+"""What each function of a :class:`TaskFamily` must be (for error messages)."""
 
 
 @dataclass(frozen=True)
@@ -50,6 +59,12 @@ class TaskFamily:
         low, high: bounds of the uniform task distribution.
         reward_fn: the task reward (:data:`RewardFn`).
         success_fn: optional early-termination condition (:data:`SuccessFn`); ``None``: episodes run to the horizon.
+        sampler: optional task distribution (:data:`SamplerFn`) replacing ``U[low, high]^task_dim`` (``low`` and
+            ``high`` then only describe the range, e.g. for plots); it must draw all its randomness from the
+            generator it is given, so that the held-out tasks (:meth:`eval_tasks`) are the same on every call.
+
+    A family without a callable ``reward_fn``, with a ``task_dim`` that is not a positive integer, ``low >= high``,
+    or a ``sampler`` whose tasks have another shape or change for one seed is refused when it is built.
     """
 
     env_name: str
@@ -58,12 +73,34 @@ class TaskFamily:
     high: float
     reward_fn: RewardFn
     success_fn: SuccessFn | None = None
+    sampler: SamplerFn | None = None
+
+    def __post_init__(self) -> None:
+        if isinstance(self.task_dim, bool) or not isinstance(self.task_dim, int) or self.task_dim < 1:
+            raise InvalidValue("task_family.task_dim", self.task_dim, "a positive integer (numbers per task)")
+        if not self.low < self.high:
+            raise InvalidValue("task_family.low", self.low, f"a number below high ({self.high})")
+        for key in ("reward_fn", "success_fn", "sampler"):
+            function = getattr(self, key)
+            if not callable(function) and (key == "reward_fn" or function is not None):
+                raise InvalidType(f"task_family.{key}", function, FUNCTION_SIGNATURES[key])
+        if self.sampler is not None:
+            first, again = (self.sample(2, torch.Generator().manual_seed(0)) for _ in range(2))
+            if not torch.equal(first, again):
+                raise InvalidValue("task_family.sampler", self.sampler, FUNCTION_SIGNATURES["sampler"],
+                                   note="two draws with one seed differ")
 
     def sample(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
         """``n`` tasks, shape ``[n, task_dim]``."""
         if n < 1:
             raise ValueError(f"the number of tasks must be positive, got {n}.")
-        return self.low + (self.high - self.low) * torch.rand(n, self.task_dim, generator=generator)
+        if self.sampler is None:
+            return self.low + (self.high - self.low) * torch.rand(n, self.task_dim, generator=generator)
+        tasks = self.sampler(n, generator)
+        if not (isinstance(tasks, torch.Tensor) and tasks.shape == (n, self.task_dim)):
+            raise InvalidValue("task_family.sampler", self.sampler, FUNCTION_SIGNATURES["sampler"],
+                               note=f"asked for {n} tasks of task_dim={self.task_dim}, it returned {describe(tasks)}")
+        return check_finite("task_family.sampler", tasks.to(torch.float32))
 
     def eval_tasks(self, n: int = 20) -> torch.Tensor:
         """The fixed held-out evaluation tasks, shape ``[n, task_dim]`` (the same on every call and machine)."""
