@@ -75,7 +75,7 @@ def test_the_losses_value_estimators_take_gamma_and_lambda_zero(make_loss):
 def test_maml_and_vime_train_with_gamma_and_lambda_zero(tmp_path):
     MAMLTrainer(compose("maml", [*MAML_TINY, "advantage.gamma=0", "advantage.lmbda=0",
                                  f"output_dir={tmp_path / 'maml'}"])).step()
-    VIMETrainer(compose("vime", [*VIME_TINY, "trpo.gamma=0", "trpo.gae_lambda=0",
+    VIMETrainer(compose("vime", [*VIME_TINY, "advantage.gamma=0", "advantage.lmbda=0",
                                  f"output_dir={tmp_path / 'vime'}"])).step()
 
 

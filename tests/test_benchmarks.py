@@ -346,7 +346,7 @@ def test_run_options_refuse_a_value_without_label_and_path(script, spec, capsys)
     ("refuse", 0, "done", "silent"),
     ("warn", 0, "UserWarning: collector.total_frames: got 100 (...); expected a multiple", "clear"),
     ("warn", 0, "done", "silent"),
-    ("run", 0, "done", "clear"),
+    ("run", 0, "done", "fine"),
     ("run", 1, "IndexError: tuple index out of range", "obscure"),
 ])
 def test_bad_input_probe_sorts_outcomes(expect, returncode, output, kind):
@@ -362,3 +362,16 @@ def test_bad_input_probe_runs_a_case_in_a_fresh_process(tmp_path):
     case = next(case for case in probe.CASES if case.label == "make_task_env with a list")
     kind, line = probe.verdict(case.expect, *probe.run(case.argv, str(tmp_path), 120)[:2])
     assert kind == "clear" and "tasks: got [0.1, 0.2]" in line
+
+
+def test_initial_policy_diagnostic_measures_clipping_and_distance():
+    """scratch's fresh Gaussian (loc ≈ 0, σ = 1) puts P(|N(0, 1)| > 1) ≈ 0.32 of its action entries outside the
+    bounds; the line names every measured quantity."""
+    from script_loading import load_script
+
+    bench = load_script("scripts/diagnostics/initial_policy.py")
+    line = bench.describe("scratch", None, "point_nav", seed=0, trajectories=4, position_key="position")
+    fields = dict(part.rsplit(" ", 1) for part in line.split(": ", 1)[1].split(", "))
+    assert 0.25 < float(fields["actions outside the bounds"]) < 0.40
+    assert float(fields["log-std"]) == 0.0 and float(fields["mean |loc|"]) < 0.2
+    assert 0 < float(fields["end distance from the start"]) < 3 and float(fields["return k=0"]) < 0

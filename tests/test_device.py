@@ -98,14 +98,14 @@ def test_proposal_env_discriminator_and_batches_on_the_device(device, name):
 def test_maml_recipe_keeps_everything_on_the_device(tmp_path, device, monkeypatch):
     seen = {}
     capture(monkeypatch, umrl.trainers.maml, "build", seen)
-    capture(monkeypatch, umrl.trainers.maml, "collect", seen)
+    capture(monkeypatch, umrl.trainers.maml, "collect_env_steps", seen)  # the default sampler (sample_by=env_steps)
     cfg = compose("maml", [f"device={device}", "env.horizon=5", "meta_batch_size=2", "trajectories_per_task=2",
                            "policy.hidden=[8]", "logger.backend=none", "progress=false", "trpo.cg_iters=2",
                            "iterations=1", f"output_dir={tmp_path}"])
     umrl.trainers.maml.train(cfg)
     proposal, policy, loss, trpo = seen["build"][0][2]
     assert_on(device, policy=policy, loss=loss, trpo=vars(trpo), env=proposal.env.transform,
-              batches=[result for _, _, result in seen["collect"]])
+              batches=[result for _, _, result in seen["collect_env_steps"]])
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -147,7 +147,7 @@ def test_vime_recipe_keeps_everything_on_the_device(tmp_path, device, monkeypatc
     assert saved["dynamics_optimizer"].state, "the dynamics model took no step"
     assert_on(device, **{k: saved[k] for k in ("policy", "dynamics", "dynamics_optimizer", "median_history",
                                               "replay", "holdout", "visited")},
-              batches=[result for _, _, result in seen["collect"]])
+              batches=[result for _, _, result in seen["collect_env_steps"]])
 
 
 @pytest.mark.parametrize("device", DEVICES)

@@ -6,6 +6,7 @@ from script_loading import compose_config
 from tensordict import TensorDict
 
 from umrl.configs import ConfigError, validate
+from umrl.configs.maml import MAMLConfig
 from umrl.configs.suite import SuiteConfig
 from umrl.metatest import AdaptationConfig, TaskAdapter, make_eval_env
 from umrl.modules.policy import make_gaussian_policy
@@ -93,9 +94,43 @@ def test_bad_env_steps_is_refused_in_the_house_format(value, error):
 
 
 def test_suite_config_accepts_env_steps_and_refuses_bad_values(tmp_path):
-    cfg = compose_config("benchmarks/config", "suite", [f"output_dir={tmp_path}", "protocol.env_steps=4000"])
+    cfg = compose_config("umrl/suite/config", "suite", [f"output_dir={tmp_path}", "protocol.env_steps=4000"])
     assert validate(cfg, SuiteConfig).protocol.env_steps == 4000
-    assert compose_config("benchmarks/config", "suite", [f"output_dir={tmp_path}"]).protocol.env_steps is None
+    assert compose_config("umrl/suite/config", "suite", [f"output_dir={tmp_path}"]).protocol.env_steps is None
     with pytest.raises(ConfigError, match=r"protocol.env_steps: got 0; expected null or an integer >= 1"):
-        validate(compose_config("benchmarks/config", "suite", [f"output_dir={tmp_path}", "protocol.env_steps=0"]),
+        validate(compose_config("umrl/suite/config", "suite", [f"output_dir={tmp_path}", "protocol.env_steps=0"]),
                  SuiteConfig)
+
+
+def _meta_batch(sample_by: str, horizon: int = 20, per_task: int = 4):
+    """MAML's meta-training batch (:func:`umrl.trainers.maml.meta_batch`) on the near and far goals with the
+    straight policy (its episodes end after 4 and 8 steps near, run to the horizon far)."""
+    from types import SimpleNamespace
+
+    from umrl.objectives.maml import MAMLLoss
+    from umrl.trainers import compose
+    from umrl.trainers.maml import meta_batch
+
+    cfg = validate(compose("maml", [f"sample_by={sample_by}", f"env.horizon={horizon}",
+                                    f"trajectories_per_task={per_task}", "logger.backend=none"]), MAMLConfig)
+    env = make_eval_env("point_nav", torch.cat([NEAR, FAR[:1]]), per_task, seed=0, horizon=horizon)
+    proposal = SimpleNamespace(env=env, num_tasks=3, trajectories_per_task=per_task, resample=lambda generator: None)
+    policy = _straight_policy()
+    loss = MAMLLoss(policy, inner_lr=1e-9)  # the adapted policy stays the straight one: same episode lengths
+    loss.make_value_estimator(gamma=0.99, lmbda=1.0, normalize=True)
+    support, _, query, _ = meta_batch(cfg, proposal, policy, loss, torch.Generator().manual_seed(0))
+    env.close()
+    return support, query
+
+
+def test_maml_meta_training_samples_env_steps_per_task_and_early_ends_add_trajectories():
+    """The MAML reference's sampler in meta-training (``sample_by=env_steps``, the default): each task's budget is
+    N × H = 80 env steps, both before and after the inner step."""
+    support, query = _meta_batch("env_steps")
+    for batch in (support, query):
+        # 4-step episodes: 20 of them; 8-step: 10; 20-step: 4 (the padded trajectories hold no step)
+        assert batch["mask"].sum(-1).tolist() == [[4] * 20, [8] * 10 + [0] * 10, [20] * 4 + [0] * 16]
+        assert torch.isfinite(batch["advantage"]).all()
+    support, query = _meta_batch("trajectories")
+    assert support["mask"].sum(-1).tolist() == [[4] * 4, [8] * 4, [20] * 4]  # the option: exactly N trajectories
+    assert query.shape == support.shape == (3, 4, 20)

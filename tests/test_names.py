@@ -1,7 +1,6 @@
 """Names are names: run and profile names without path parts, reuse templates with plain fields only, reused runs of
 the method's recipe, env, proposal and skill count; all refused before any work, in the house format."""
 import pytest
-import torch
 from script_loading import compose_config
 
 import umrl.trainers
@@ -10,6 +9,7 @@ from umrl.configs import ConfigError, validate
 from umrl.configs.diayn import DIAYNConfig
 from umrl.configs.suite import SuiteConfig
 from umrl.envs import get_env_spec
+from umrl.modules.policy import make_gaussian_policy
 from umrl.runtime import Checkpointer, make_logger
 
 TINY = ["num_tasks=2", "protocol.num_steps=1", "protocol.num_trajectories=2", "protocol.horizon=10", "report.steps=[0]",
@@ -17,7 +17,7 @@ TINY = ["num_tasks=2", "protocol.num_steps=1", "protocol.num_trajectories=2", "p
 
 
 def _suite(tmp_path, *overrides):
-    return validate(compose_config("benchmarks/config", "suite", [f"output_dir={tmp_path}", *TINY, *overrides]),
+    return validate(compose_config("umrl/suite/config", "suite", [f"output_dir={tmp_path}", *TINY, *overrides]),
                     SuiteConfig)
 
 
@@ -43,9 +43,12 @@ def test_reuse_templates_hold_plain_fields_only(tmp_path, template):
 
 
 def _maml_run(directory, env="point_nav", proposal="oracle", num_skills=20):
+    """A MAML checkpoint of ``env``/``proposal`` whose metadata describes its (tiny) policy, as a reader checks."""
+    spec = get_env_spec(env)
     meta = {**dict.fromkeys(MAML_FORMAT.meta_keys, 1), "env": env, "proposal": proposal, "num_skills": num_skills,
-            "obs_dim": get_env_spec(env).obs_dim}
-    MAML_FORMAT.save(Checkpointer(directory / "checkpoints"), 5, meta, {"seed": 0}, policy={"w": torch.ones(1)})
+            "obs_dim": spec.obs_dim, "act_dim": spec.act_dim, "hidden": [4], "init_std": 1.0, "inner_lr": 0.1}
+    policy = make_gaussian_policy(spec.obs_dim, spec.act_dim, hidden=[4])
+    MAML_FORMAT.save(Checkpointer(directory / "checkpoints"), 5, meta, {"seed": 0}, policy=policy.state_dict())
 
 
 def test_a_reused_run_must_be_of_the_methods_proposal_env_and_skills(tmp_path):

@@ -111,7 +111,7 @@ def make_proposal(
     horizon: int = 100,
     num_skills: int | None = None,
     diayn_checkpoint: str | os.PathLike | None = None,
-    discriminator_hidden: tuple[int, ...] = (300, 300),
+    discriminator_hidden: tuple[int, ...] | None = None,
     device: torch.device | str = "cpu",
     arena: float | None = None,
 ) -> TaskProposal:
@@ -130,7 +130,8 @@ def make_proposal(
         num_skills: ``K`` of the random discriminator (default: the env's
             :attr:`~umrl.envs.EnvSpec.num_skills`); diayn reads it from the checkpoint.
         diayn_checkpoint: DIAYN run directory or ``step_*.pt`` file (proposal ``diayn`` only).
-        discriminator_hidden: widths of the random discriminator.
+        discriminator_hidden: widths of the random discriminator; ``None``: the env's
+            :attr:`~umrl.envs.EnvSpec.diayn_hidden` (DIAYN's discriminator, left at its random initialisation).
         device: device of the env's tensors and of the discriminator (MuJoCo physics stays on CPU threads, its
             outputs move once per step); tasks are drawn on the CPU (the same tasks on every device).
         arena: clip point_nav's position to [-arena, arena]² (> 0); ``None``: unbounded, or :data:`RANDOM_ARENA`
@@ -164,7 +165,8 @@ def make_proposal(
         check_observation_size(env_name, trained_obs_dim, f"the discriminator of {diayn_checkpoint}")
     else:
         num_skills = num_skills or spec.num_skills
-        discriminator = make_discriminator(spec.obs_dim, num_skills, hidden=discriminator_hidden, seed=seed)
+        hidden = spec.diayn_hidden if discriminator_hidden is None else discriminator_hidden
+        discriminator = make_discriminator(spec.obs_dim, num_skills, hidden=hidden, seed=seed)
         discriminator = discriminator.eval().requires_grad_(False)
     discriminator = discriminator.to(device)
     num_tasks = num_tasks or num_skills

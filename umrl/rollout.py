@@ -40,7 +40,7 @@ from umrl.modules.batched_mlp import BatchedGaussianMLP
 from umrl.trajectories import trajectory_mask
 from umrl.validation import InvalidType, InvalidValue, check_int
 
-__all__ = ["FunctionalPolicy", "NonFiniteActions", "check_cudagraphs", "collect", "collect_env_steps", "first_env_steps",
+__all__ = ["SAMPLE_BY", "FunctionalPolicy", "NonFiniteActions", "check_cudagraphs", "collect", "collect_env_steps", "first_env_steps",
            "fixed_horizon_steps"]
 
 
@@ -247,6 +247,12 @@ def _check_actions(rollout: TensorDictBase, policy: ProbabilisticActor, params: 
                            note=f"{int((~finite).sum())} of {action.numel()} action entries are not finite")
 
 
+#: How a task's batch of ``N`` env copies is sampled: ``"env_steps"``, its first episodes up to ``N × H`` env steps
+#: (:func:`collect_env_steps`, the MAML reference's sampler: episodes that end early add trajectories), or
+#: ``"trajectories"``, exactly ``N`` trajectories (:func:`collect`).
+SAMPLE_BY = ("env_steps", "trajectories")
+
+
 def collect_env_steps(
     env: EnvBase,
     policy: ProbabilisticActor,
@@ -255,6 +261,7 @@ def collect_env_steps(
     horizon: int,
     env_steps: int,
     params: TensorDictBase | None = None,
+    cudagraphs: bool = False,
 ) -> TensorDictBase:
     """Each task's first episodes up to ``env_steps`` env steps, the last one whole: a ``[T, M, H]`` batch.
 
@@ -267,7 +274,7 @@ def collect_env_steps(
     at most ``ceil(env_steps / N)`` rounds run.
 
     Keyword Args:
-        num_tasks, horizon, params: as :func:`collect`.
+        num_tasks, horizon, params, cudagraphs: as :func:`collect`.
         env_steps: the per-task budget (>= 1).
 
     Returns:
@@ -277,7 +284,7 @@ def collect_env_steps(
     check_int("env_steps", env_steps, min=1)
     rounds, steps = [], 0
     while True:
-        rounds.append(collect(env, policy, num_tasks=num_tasks, horizon=horizon, params=params))
+        rounds.append(collect(env, policy, num_tasks=num_tasks, horizon=horizon, params=params, cudagraphs=cudagraphs))
         steps = steps + rounds[-1]["mask"].sum((-2, -1))
         if bool((steps >= env_steps).all()):
             return first_env_steps(torch.cat(rounds, 1), env_steps)

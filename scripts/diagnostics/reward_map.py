@@ -35,7 +35,8 @@ def main() -> None:
     parser.add_argument("--random-seeds", type=int, nargs="*", default=[0, 1, 2])
     parser.add_argument("--diayn-checkpoint", nargs="*", default=[], help="DIAYN run dirs or step_*.pt files")
     parser.add_argument("--num-skills", type=int, default=None, help="random discriminators (default: the env's)")
-    parser.add_argument("--hidden", type=int, nargs="+", default=[300, 300], help="random discriminators' widths")
+    parser.add_argument("--hidden", type=int, nargs="+", default=None,
+                        help="random discriminators' widths (default: the env's EnvSpec.diayn_hidden, as UML-random)")
     parser.add_argument("--init", default="xavier", choices=DISCRIMINATOR_INITS, help="random discriminators' init")
     parser.add_argument("--radius", type=float, default=None, help="R (default: horizon x 0.1 = 10)")
     parser.add_argument("--resolution", type=int, default=201)
@@ -45,8 +46,9 @@ def main() -> None:
     radius = args.radius or spec.horizon * ACTION_SCALE
     eval_goals = spec.eval_tasks()
     num_skills = args.num_skills or spec.num_skills
+    hidden = args.hidden or spec.diayn_hidden
     discriminators = {
-        f"random_{args.init}_seed{seed}": make_discriminator(spec.obs_dim, num_skills, hidden=args.hidden, seed=seed,
+        f"random_{args.init}_seed{seed}": make_discriminator(spec.obs_dim, num_skills, hidden=hidden, seed=seed,
                                                              init=args.init).eval().requires_grad_(False)
         for seed in args.random_seeds
     }

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from umrl.configs.common import (
     CheckpointConfig,
     EnvConfig,
+    GAEConfig,
     PolicyConfig,
     RunConfig,
     TRPOConfig,
@@ -17,8 +18,9 @@ from umrl.configs.common import (
 from umrl.configs.memory import Allocation, allocation_errors, step_bytes
 from umrl.configs.validate import boolean, checked, choice, group, integer, number, string
 from umrl.envs import get_env_spec
-from umrl.objectives.maml_hvp import META_HVPS
+from umrl.optim.meta_hvp import META_HVPS
 from umrl.proposals import PROPOSALS
+from umrl.rollout import SAMPLE_BY
 from umrl.validation import InvalidValue, check_bool, check_path_exists
 
 COMPILE_UNSUPPORTED = (
@@ -30,7 +32,7 @@ COMPILE_UNSUPPORTED = (
 HVP_MODES = tuple(META_HVPS)
 """``trpo.hvp``: ``gauss_newton`` (J^T F J through the inner step, by autograd), ``analytic`` (the same product
 derived by hand for the ReLU MLP policy: equal to float rounding, faster) or ``exact`` (the KL's Hessian); the
-strategies are :data:`umrl.objectives.maml_hvp.META_HVPS`."""
+strategies are :data:`umrl.optim.meta_hvp.META_HVPS`."""
 
 
 @dataclass
@@ -51,9 +53,9 @@ class InnerConfig:
 
 
 @dataclass
-class AdvantageConfig:
-    gamma: float = number(ge=0, le=1)
-    lmbda: float = number(ge=0, le=1)
+class AdvantageConfig(GAEConfig):
+    """:class:`GAEConfig` plus ``normalize`` (standardise each task's advantages)."""
+
     normalize: bool = boolean()
 
 
@@ -128,6 +130,7 @@ class MAMLConfig(RunConfig):
     num_skills: int | None = integer(min=2)
     meta_batch_size: int | None = integer(min=1)
     trajectories_per_task: int = integer(min=1)
+    sample_by: str = choice(SAMPLE_BY)
     iterations: int | None = integer(min=1)
     policy: PolicyConfig = group(PolicyConfig)
     maml: InnerConfig = group(InnerConfig)

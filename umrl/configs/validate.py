@@ -254,10 +254,10 @@ often checkpoints are written and kept, logging, the progress bar, ``resume`` it
 Every other key (seed, env, widths, skill counts, learning rates, TRPO settings...) must match the
 checkpoint's saved config: changing it would silently continue a different run. An entry covers its sub-keys."""
 
-RESUME_ADDED = {"compile": False, "network.discriminator_input_dims": None}
+RESUME_ADDED = {"compile": False, "network.discriminator_input_dims": None, "env.module": None}
 """Keys added to a recipe after runs were saved without them, with the value that computes what those runs computed:
 a checkpoint's config that lacks one matches a run with that value (MAML's ``compile``, DIAYN's whole-observation
-discriminator)."""
+discriminator, no ``env.module``)."""
 
 _ABSENT = "<absent>"
 

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from umrl.configs.common import (
     BatchedEnvConfig,
     CheckpointConfig,
+    GAEConfig,
     PolicyConfig,
     RunConfig,
     TRPOConfig,
@@ -41,14 +42,6 @@ class BonusConfig:
 
 
 @dataclass
-class VIMETRPOConfig(TRPOConfig):
-    """:class:`TRPOConfig` plus the discount and GAE lambda (each in [0, 1])."""
-
-    gamma: float = number(ge=0, le=1)
-    gae_lambda: float = number(ge=0, le=1)
-
-
-@dataclass
 class CoverageConfig:
     cell_size: float | None = number(gt=0)
 
@@ -69,7 +62,8 @@ class VIMEConfig(RunConfig):
     policy: PolicyConfig = group(PolicyConfig)
     dynamics: DynamicsConfig = group(DynamicsConfig)
     bonus: BonusConfig = group(BonusConfig)
-    trpo: VIMETRPOConfig = group(VIMETRPOConfig)
+    trpo: TRPOConfig = group(TRPOConfig)
+    advantage: GAEConfig = group(GAEConfig)
     coverage: CoverageConfig = group(CoverageConfig)
     checkpoint: VIMECheckpointConfig = group(VIMECheckpointConfig)
 

@@ -5,25 +5,22 @@ module             job
 =================  ===========================================================================================
 ``protocol``       the adaptation protocol: :class:`AdaptationConfig`, :class:`TaskAdapter` (batched per-task
                    updates, SGD schedule), DIAYN-init's :func:`select_skills`, the learning-rate sweep
-``methods``        the method registry (:data:`METHODS` of typed :class:`Method` / :class:`Pretraining` records),
-                   :func:`load_initialisation`, the typed :class:`CellSpec` and :func:`run_cell`
+``method_table``   the method registry: :data:`METHODS` of typed :class:`Method` / :class:`Pretraining` records
+``methods``        :func:`load_initialisation`, the typed :class:`CellSpec` and :func:`run_cell`
 ``results``        tidy rows / CSV, curves, the summary and ablation tables, the suite's ``summary.md``
 ``stats``          AUC, IQM, bootstrap confidence intervals
+``verdicts``       the verdict rule: paired cells → agrees / partly / disagrees / undecided per claim and env
+                   (a command, imported on its own: ``python -m umrl.metatest.verdicts results/``)
 ``plots``          adaptation-curve and ablation figures
 ``provenance``     commit, command and hardware of a run
 =================  ===========================================================================================
 """
+from umrl.metatest.method_table import METHODS, RECIPES, Method, Pretraining, default_lr_schedule, get_method
 from umrl.metatest.methods import (
-    METHODS,
     PROPOSALS,
-    RECIPES,
     CellSpec,
     Initialisation,
-    Method,
-    Pretraining,
     SweepConfig,
-    default_lr_schedule,
-    get_method,
     load_initialisation,
     meta_test,
     run_cell,

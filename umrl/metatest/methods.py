@@ -22,8 +22,8 @@ from umrl.checkpoints import DIAYN_FORMAT, MAML_FORMAT, VIME_FORMAT, maml_policy
 from umrl.envs import get_env_spec
 from umrl.envs.tasks import get_task_family
 from umrl.metatest.cache import write_json_atomic
+from umrl.metatest.method_table import METHODS, RECIPES, Method, Pretraining, get_method
 from umrl.metatest.protocol import (
-    DEFAULT_SGD_SCHEDULE,
     AdaptationConfig,
     TaskAdapter,
     make_eval_env,
@@ -31,6 +31,7 @@ from umrl.metatest.protocol import (
     sweep_learning_rate,
     sweep_tasks,
 )
+from umrl.metatest.provenance import relative_path
 from umrl.metatest.results import to_rows, write_rows
 from umrl.modules.policy import make_gaussian_policy
 from umrl.objectives.policy_gradient import episode_lengths, episode_mean
@@ -48,74 +49,6 @@ from umrl.validation import (
     check_str,
     resolve_device,
 )
-
-#: Pre-training recipes (the MAML recipe's task proposals are :data:`umrl.proposals.PROPOSALS`).
-RECIPES = ("diayn", "maml", "vime")
-
-
-@dataclass(frozen=True)
-class Pretraining:
-    """One pre-training run kind: ``recipe`` (``diayn`` | ``maml`` | ``vime``) and, for MAML, its ``proposal``.
-
-    ``kind`` is its name in paths and job keys (``"diayn"``, ``"maml_random"``, ...); ``requires`` lists the runs
-    it reads (MAML with the DIAYN proposal reads the DIAYN run of the same env and seed).
-    """
-
-    recipe: str
-    proposal: str | None = None
-
-    def __post_init__(self):
-        if self.recipe not in RECIPES:
-            raise ValueError(f"pretraining recipe must be one of {list(RECIPES)}, got {self.recipe!r}.")
-        if (self.recipe == "maml") != (self.proposal is not None) or (
-                self.proposal is not None and self.proposal not in PROPOSALS):
-            raise ValueError(f"pretraining proposal: the maml recipe needs one of {list(PROPOSALS)} and the others "
-                             f"none; got recipe {self.recipe!r} with proposal {self.proposal!r}.")
-
-    @property
-    def kind(self) -> str:
-        return self.recipe if self.proposal is None else f"{self.recipe}_{self.proposal}"
-
-    @property
-    def requires(self) -> tuple[Pretraining, ...]:
-        return (Pretraining("diayn"),) if self.proposal == "diayn" else ()
-
-
-@dataclass(frozen=True)
-class Method:
-    """A compared method: its pre-training (None: scratch) and its meta-test update rule (``sgd`` | ``adam``)."""
-
-    name: str
-    pretraining: Pretraining | None
-    optimizer: str
-
-
-METHODS: dict[str, Method] = {m.name: m for m in (
-    Method("uml_diayn", Pretraining("maml", "diayn"), "sgd"),
-    Method("uml_random", Pretraining("maml", "random"), "sgd"),
-    Method("oracle", Pretraining("maml", "oracle"), "sgd"),
-    Method("vime_init", Pretraining("vime"), "adam"),
-    Method("diayn_init", Pretraining("diayn"), "adam"),
-    Method("scratch", None, "adam"),
-    # "UML-random (bounded arena, ablation)": not the paper's method and in no profile's default methods; it tests
-    # why UML-random fails on point_nav (meta-training positions clipped to [-1, 1]², meta-test env unbounded).
-    Method("uml_random_arena", Pretraining("maml", "random_arena"), "sgd"),
-)}
-
-
-def default_lr_schedule(method: str) -> str:
-    """The step-size schedule a method's cells run without a ``protocol.sgd_schedule`` override:
-    :data:`~umrl.metatest.protocol.DEFAULT_SGD_SCHEDULE` for the SGD methods (MAML initialisations), ``"constant"``
-    for Adam's and for names that are not methods."""
-    method_record = METHODS.get(method)
-    return DEFAULT_SGD_SCHEDULE if method_record is not None and method_record.optimizer == "sgd" else "constant"
-
-
-def get_method(name: str) -> Method:
-    """The :class:`Method` called ``name``; a clear error for an unknown one."""
-    if name not in METHODS:
-        raise ValueError(f"unknown method {name!r}; valid choices: {list(METHODS)}.")
-    return METHODS[name]
 
 
 @dataclass
@@ -145,10 +78,9 @@ def _load_initialisation(method: str, env_name: str, checkpoint: str | os.PathLi
                          seed: int) -> Initialisation:
     spec = get_method(method)
     pretraining = spec.pretraining
-    if pretraining is None:
-        seed_everything(seed)
+    if pretraining is None:  # the draw MAML's and VIME's initialisations start from for this seed
         env = get_env_spec(env_name)
-        return Initialisation(make_gaussian_policy(env.obs_dim, env.act_dim), spec.optimizer)
+        return Initialisation(make_gaussian_policy(env.obs_dim, env.act_dim, seed=seed), spec.optimizer)
     if checkpoint is None:
         raise ValueError(f"method {method!r} needs the checkpoint of its {pretraining.kind} pre-training.")
     recipe_format = {"diayn": DIAYN_FORMAT, "maml": MAML_FORMAT, "vime": VIME_FORMAT}[pretraining.recipe]
@@ -171,7 +103,9 @@ def meta_test(init: Initialisation, env_name: str, tasks: torch.Tensor, *, lr: f
 
     The envs, the per-task parameters and the batches live on ``device`` (``init.policy`` must be there too, as
     :func:`load_initialisation` leaves it). DIAYN-init first picks each task's best skill from
-    ``skill_trajectories`` rollouts per (task, skill); ``info["skills"]`` lists them. ``observe`` is passed to
+    ``skill_trajectories`` rollouts per (task, skill); ``info["skills"]`` lists them and
+    ``info["skill_choice_env_steps"]`` counts the env steps per task that choice took (before k = 0, on no curve:
+    skills × ``skill_trajectories`` × horizon). ``observe`` is passed to
     :meth:`TaskAdapter.run` (it sees every step's batch).
     """
     seed_everything(seed)
@@ -181,6 +115,8 @@ def meta_test(init: Initialisation, env_name: str, tasks: torch.Tensor, *, lr: f
         skills, _ = select_skills(init.policy, env_name, tasks, init.num_skills, num_trajectories=skill_trajectories,
                                   seed=seed, horizon=config.horizon, device=device)
         info["skills"] = skills.tolist()
+        # env steps per task that no curve shows: every skill rolled out before k = 0
+        info["skill_choice_env_steps"] = init.num_skills * skill_trajectories * config.horizon
     env = make_eval_env(env_name, tasks, config.num_trajectories, seed=seed, horizon=config.horizon, skills=skills,
                         num_skills=init.num_skills, device=device)
     adapter = TaskAdapter(init.policy, env, tasks.shape[0], optimizer=init.optimizer, lr=lr, config=config)
@@ -197,7 +133,7 @@ class SweepConfig:
     ``later_factors``."""
 
     enabled: bool = False
-    lrs: tuple[float, ...] = (1e-4, 3e-4, 1e-3, 3e-3)
+    lrs: tuple[float, ...] = (1e-4, 3e-4, 1e-3, 3e-3, 1e-2)
     later_factors: tuple[float, ...] = (0.0625, 0.125, 0.25, 0.5)
     num_tasks: int = 5
     num_steps: int = 5
@@ -309,7 +245,8 @@ def run_cell(spec: CellSpec) -> str:
     start = time.perf_counter()
     config = spec.protocol
     init = load_initialisation(spec.method, spec.env, spec.checkpoint, seed=spec.seed, device=device)
-    info: dict = {"method": spec.method, "env": spec.env, "seed": spec.seed, "checkpoint": spec.checkpoint,
+    checkpoint = None if spec.checkpoint is None else relative_path(spec.checkpoint, output)  # no machine path
+    info: dict = {"method": spec.method, "env": spec.env, "seed": spec.seed, "checkpoint": checkpoint,
                   "num_tasks": spec.num_tasks, "skill_trajectories": spec.skill_trajectories}
     sweep_config = replace(config, num_steps=spec.sweep.num_steps)
 

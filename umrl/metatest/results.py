@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from umrl.metatest.method_table import default_lr_schedule
 from umrl.metatest.plots import METHOD_COLORS, Curve
 from umrl.metatest.stats import auc, bootstrap_ci, summarize
 from umrl.runtime import write_text_atomic
@@ -28,17 +29,11 @@ from umrl.runtime import write_text_atomic
 COLUMNS = ("method", "env", "seed", "task", "step", "return", "length", "lr_schedule")
 
 
-def _default_schedule(method: str) -> str:
-    from umrl.metatest.methods import default_lr_schedule  # methods.py imports this module
-
-    return default_lr_schedule(method)
-
-
 def arm_label(method: str, lr_schedule: str | None = None) -> str:
     """The name a (method, schedule) pair has in tables, curves and legends: the method alone under its default
-    schedule (:func:`~umrl.metatest.methods.default_lr_schedule`: ``uml_diayn`` is the reference schedule, ``scratch``
+    schedule (:func:`~umrl.metatest.method_table.default_lr_schedule`: ``uml_diayn`` is the reference schedule, ``scratch``
     Adam's constant lr), else ``uml_diayn (constant)``."""
-    if lr_schedule is None or lr_schedule == _default_schedule(method):
+    if lr_schedule is None or lr_schedule == default_lr_schedule(method):
         return method
     return f"{method} ({lr_schedule})"
 
@@ -54,7 +49,7 @@ def _label(row: Mapping) -> str:
 def arm_styles(rows: Iterable[Mapping]) -> dict[str, dict]:
     """Line style per arm label: the method's colour, dashed for a schedule other than the method's default."""
     return {_label(r): {"color": METHOD_COLORS.get(r["method"]),
-                        "linestyle": "-" if _schedule(r) == _default_schedule(r["method"]) else "--"} for r in rows}
+                        "linestyle": "-" if _schedule(r) == default_lr_schedule(r["method"]) else "--"} for r in rows}
 
 
 def to_rows(returns: torch.Tensor | np.ndarray, lengths: torch.Tensor | np.ndarray, *, method: str, env: str,
@@ -62,7 +57,7 @@ def to_rows(returns: torch.Tensor | np.ndarray, lengths: torch.Tensor | np.ndarr
     """Tidy rows (:data:`COLUMNS` plus ``extra`` columns) from returns and mean episode lengths, both ``[K + 1, T]``;
     ``lr_schedule`` None is the method's default schedule."""
     returns, lengths = np.asarray(returns), np.asarray(lengths)
-    lr_schedule = _default_schedule(method) if lr_schedule is None else lr_schedule
+    lr_schedule = default_lr_schedule(method) if lr_schedule is None else lr_schedule
     if lengths.shape != returns.shape:
         raise ValueError(f"lengths {lengths.shape} must match returns {returns.shape} ([K + 1, T]).")
     return [
@@ -169,7 +164,7 @@ def _ordered_arms(rows: Sequence[Mapping], env: str, methods: Sequence[str] | No
     """Arms present for ``env``: in the order of ``methods`` (each method's default schedule first), others sorted."""
     order = {m: i for i, m in enumerate(methods or [])}
     present = {(r["method"], _schedule(r)) for r in rows if r["env"] == env}
-    ranked = sorted(present, key=lambda a: (order.get(a[0], len(order)), a[0], a[1] != _default_schedule(a[0]), a[1]))
+    ranked = sorted(present, key=lambda a: (order.get(a[0], len(order)), a[0], a[1] != default_lr_schedule(a[0]), a[1]))
     return [arm_label(*arm) for arm in ranked]
 
 

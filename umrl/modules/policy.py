@@ -4,13 +4,16 @@
 mean, a learned state-independent log-std (initial std ``init_std``) gives the scale, and the action is drawn from an
 independent Normal (no tanh: the environments clip actions to their bounds, as rllab's MAML code did). The mean
 network starts as maml_rl's does (``sandbox/rocky/tf/core/utils.py``, ``make_dense_layer``): Xavier-uniform weights
-and zero biases in every layer.
+and zero biases in every layer. With ``seed``, the weights are drawn from ``torch.manual_seed(seed)`` in a forked RNG,
+so every method's random initialisation (MAML's, VIME's, scratch's) is the same draw for the same seed, whatever
+the caller drew before.
 
 Reads ``in_keys`` (concatenated on the last dim), writes ``"loc"``, ``"scale"``, ``"action"`` and
 ``"action_log_prob"``, all with the input's batch shape.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Sequence
 
@@ -29,6 +32,7 @@ def make_gaussian_policy(
     hidden: Sequence[int] = (300, 300),
     init_std: float = 1.0,
     in_keys: Sequence[str] = ("observation",),
+    seed: int | None = None,
 ) -> ProbabilisticActor:
     """Return a Gaussian MLP policy ``π(a|s)`` with a learned, state-independent std.
 
@@ -40,16 +44,21 @@ def make_gaussian_policy(
         hidden: hidden layer widths (ReLU).
         init_std: initial standard deviation of every action dimension (> 0).
         in_keys: observation keys, concatenated along the last dimension.
+        seed: draw the weights from ``torch.manual_seed(seed)`` inside a forked RNG (the global RNG is untouched);
+            ``None``: from the global RNG, as any torch layer.
     """
     if obs_dim < 1 or act_dim < 1:
         raise ValueError(f"obs_dim and act_dim must be positive, got {obs_dim} and {act_dim}.")
     if init_std <= 0:
         raise ValueError(f"init_std must be positive, got {init_std}.")
-    mlp = MLP(in_features=obs_dim, out_features=act_dim, num_cells=list(hidden), activation_class=nn.ReLU)
-    for layer in mlp.modules():
-        if isinstance(layer, nn.Linear):
-            nn.init.xavier_uniform_(layer.weight)
-            nn.init.zeros_(layer.bias)
+    with torch.random.fork_rng(devices=[]) if seed is not None else contextlib.nullcontext():
+        if seed is not None:
+            torch.manual_seed(seed)
+        mlp = MLP(in_features=obs_dim, out_features=act_dim, num_cells=list(hidden), activation_class=nn.ReLU)
+        for layer in mlp.modules():
+            if isinstance(layer, nn.Linear):
+                nn.init.xavier_uniform_(layer.weight)
+                nn.init.zeros_(layer.bias)
     net = nn.Sequential(mlp, AddStateIndependentNormalScale(act_dim, init_value=math.log(init_std), scale_lb=1e-6))
     module = TensorDictModule(_Concat(net) if len(in_keys) > 1 else net, in_keys=list(in_keys),
                               out_keys=["loc", "scale"])

@@ -3,12 +3,13 @@
 ``proposal=random_arena`` is an ablation, not the paper's method: UML-random meta-trained with point_nav's position
 clipped to [-a, a]² (``env.arena``, 1.0 when null); see :mod:`umrl.proposals`.
 
-One meta-iteration (:func:`meta_iteration`): ``proposal.resample`` picks T tasks -> :func:`umrl.rollout.collect` N
-pre-update trajectories per task with θ -> the loss's value estimator (linear baseline + GAE) -> ``MAMLLoss.adapt``
-(one PG step per task) -> collect N post-update trajectories per task with every task's adapted parameters (one
+One meta-iteration (:func:`meta_iteration`): ``proposal.resample`` picks T tasks -> collect each task's pre-update
+batch with θ (``sample_by=env_steps``: its first episodes up to N × H env steps,
+:func:`umrl.rollout.collect_env_steps`; ``trajectories``: N trajectories, :func:`umrl.rollout.collect`) -> the loss's
+value estimator (linear baseline + GAE) -> ``MAMLLoss.adapt`` (one PG step per task) -> collect the post-update batches the same way with every task's adapted parameters (one
 batched policy call per env step) -> :class:`~umrl.optim.trpo.TRPOStep` on ``MAMLLoss``'s forward (the query
 surrogate through the inner step), with the KL Hessian-vector product strategy ``trpo.hvp`` names
-(:mod:`umrl.objectives.maml_hvp`) on ``trpo.hvp_fraction`` of the trajectories.
+(:mod:`umrl.optim.meta_hvp`) on ``trpo.hvp_fraction`` of the trajectories.
 
 Metrics of :meth:`MAMLTrainer.step`: ``train/`` return_pre, return_post (mean undiscounted return of the pre/post-update
 trajectories), reward_mean/std/min/max (task rewards of the pre-update batch), kl, surrogate_before,
@@ -42,14 +43,15 @@ from umrl.checkpoints import MAML_FORMAT, save_maml_checkpoint
 from umrl.checkpoints.format import check_budget_left
 from umrl.configs import check_resume, validate
 from umrl.configs.maml import MAMLConfig
+from umrl.folder_lock import claim_run_folder, releases_folder_on_error
 from umrl.modules.policy import make_gaussian_policy, policy_log_std
 from umrl.objectives.maml import MAMLLoss
-from umrl.objectives.maml_hvp import make_meta_hvp
-from umrl.objectives.policy_gradient import episode_returns
+from umrl.objectives.policy_gradient import episode_mean, episode_returns
+from umrl.optim.meta_hvp import make_meta_hvp
 from umrl.optim.trpo import TRPOStep
 from umrl.profiling import device_clock
 from umrl.proposals import make_proposal
-from umrl.rollout import NonFiniteActions, check_cudagraphs, collect
+from umrl.rollout import NonFiniteActions, check_cudagraphs, collect, collect_env_steps
 from umrl.runtime import (
     Checkpointer,
     check_finite,
@@ -62,6 +64,7 @@ from umrl.runtime import (
     seed_everything,
     set_rng_state,
 )
+from umrl.signals import stop_requests
 from umrl.validation import InvalidValue, resolve_device
 
 __all__ = ["MAMLTrainer", "build", "meta_batch", "meta_iteration", "meta_step", "train"]
@@ -79,8 +82,12 @@ def meta_batch(cfg: DictConfig, proposal, policy, loss: MAMLLoss, generator: tor
     advantages = loss.value_estimator
     device = next(policy.parameters()).device
     proposal.resample(generator)
-    graphs = {"cudagraphs": cfg.cudagraphs}
-    support = advantages(collect(proposal.env, policy, num_tasks=num_tasks, horizon=horizon, **graphs))
+    sampling = {"num_tasks": num_tasks, "horizon": horizon, "cudagraphs": cfg.cudagraphs}
+    if cfg.sample_by == "env_steps":
+        sampler, sampling["env_steps"] = collect_env_steps, proposal.trajectories_per_task * horizon
+    else:
+        sampler = collect
+    support = advantages(sampler(proposal.env, policy, **sampling))
     check_finite({"reward": support["next", "reward"]}, "the pre-update rollouts")
     inner_start = device_clock(device)
     with torch.enable_grad(), learn_context():  # the graph (second order unless first_order) is reused below
@@ -88,7 +95,7 @@ def meta_batch(cfg: DictConfig, proposal, policy, loss: MAMLLoss, generator: tor
     check_finite(dict(adapted.items(True, True)), "the adapted parameters (inner step)")
     inner_s = device_clock(device) - inner_start
     try:
-        query = collect(proposal.env, policy, num_tasks=num_tasks, horizon=horizon, params=adapted.detach(), **graphs)
+        query = sampler(proposal.env, policy, params=adapted.detach(), **sampling)
     except NonFiniteActions as err:  # the inner step diverged
         raise InvalidValue("maml.inner_lr", cfg.maml.inner_lr, "a smaller finite number > 0",
                            note=f"the adapted policy's actions after the inner step: {err.note}") from err
@@ -114,13 +121,13 @@ def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPO
     learned = device_clock(device)
 
     reward = support["next", "reward"][support["mask"]]
-    steps = 2 * support["mask"].numel()
+    steps = support["mask"].numel() + query["mask"].numel()  # simulated, episodes past a budget's last one included
     collect_s, learn_s = collected - start - inner_s, learned - collected + inner_s
     phases = {k: info.pop(k) for k in ("direction_s", "cg_s", "line_search_s")}
     metrics = {f"train/{k}": v for k, v in info.items()}
     metrics.update({
-        "train/return_pre": episode_returns(support).mean().item(),
-        "train/return_post": episode_returns(query).mean().item(),
+        "train/return_pre": episode_mean(episode_returns(support), support).mean().item(),
+        "train/return_post": episode_mean(episode_returns(query), query).mean().item(),
         "train/reward_mean": reward.mean().item(),
         "train/reward_std": reward.std().item(),
         "train/reward_min": reward.min().item(),
@@ -169,7 +176,9 @@ def build(cfg: DictConfig, generator: torch.Generator | None = None):
     if cfg.cudagraphs:
         check_cudagraphs(env)
     obs_dim, act_dim = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
-    policy = make_gaussian_policy(obs_dim, act_dim, hidden=list(cfg.policy.hidden), init_std=cfg.policy.init_std)
+    # the same draw as every method's random init for this seed (scratch's, VIME's), whatever the proposal drew
+    policy = make_gaussian_policy(obs_dim, act_dim, hidden=list(cfg.policy.hidden), init_std=cfg.policy.init_std,
+                                  seed=cfg.seed)
     policy = policy.to(device)  # initialised on the CPU: the same weights on every device
     loss = MAMLLoss(policy, inner_lr=cfg.maml.inner_lr, num_inner_steps=cfg.maml.num_inner_steps,
                     first_order=cfg.maml.first_order, task_loop=cfg.maml.task_loop)
@@ -196,15 +205,20 @@ class MAMLTrainer:
     Attributes: ``cfg`` (validated), ``proposal``, ``policy``, ``loss``, ``trpo``, ``generator`` (task draws and the
     HVP subsample), ``iteration``, ``env_steps``, ``checkpointer``.
 
+    Construction first locks ``output_dir`` until :meth:`close` (:func:`umrl.folder_lock.claim_run_folder`: a folder
+    another run uses, or one holding checkpoints while ``cfg.resume`` is false, is refused before any work).
+
     Nothing process-wide is set: the caller's torch thread count is used (``cfg.num_threads`` is applied by the
     command line, ``recipes/maml.py``, and by the suite's workers; :mod:`umrl.process`).
     """
 
+    @releases_folder_on_error
     def __init__(self, cfg: DictConfig):
         self.cfg = cfg = validate(cfg, MAMLConfig)
         self.generator = seed_everything(cfg.seed)
         self.output_dir = Path(cfg.output_dir)
         self.checkpointer = Checkpointer(self.output_dir / "checkpoints", keep_all=cfg.checkpoint.keep_all)
+        self.folder_lock = claim_run_folder(self.output_dir, resume=cfg.resume, checkpointers=[self.checkpointer])
         self.proposal, self.policy, self.loss, self.trpo = build(cfg, self.generator)
         env = self.proposal.env
         self.meta = {
@@ -224,7 +238,8 @@ class MAMLTrainer:
             check_budget_left("iterations", cfg.iterations, self.iteration, "iterations", self.output_dir)
         else:
             self.save()
-        self.logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, config=cfg, log_dir=self.output_dir)
+        self.logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, job_type="maml", config=cfg,
+                                  log_dir=self.output_dir)
 
     @property
     def done(self) -> bool:
@@ -263,26 +278,33 @@ class MAMLTrainer:
     def train(self) -> dict:
         """Step to ``cfg.iterations``, logging every iteration and checkpointing every ``cfg.checkpoint.every`` and
         at the last; returns the last iteration's metrics, ``iteration`` and the last ``checkpoint`` path (a run
-        resumed at its budget is refused at construction)."""
+        resumed at its budget is refused at construction). A SIGTERM or SIGINT finishes the meta-iteration in
+        progress, saves it and raises :class:`~umrl.signals.TrainingStopped` (:mod:`umrl.signals`)."""
         cfg, metrics = self.cfg, {}
-        path = self.checkpointer.latest()
+        path, saved = self.checkpointer.latest(), self.iteration
         progress = tqdm.tqdm(total=cfg.iterations, initial=self.iteration, disable=not cfg.progress,
                              desc="meta-iterations")
-        while not self.done:
-            metrics = self.step()
-            self.log(metrics)
-            progress.update(1)
-            progress.set_postfix(pre=f"{metrics['train/return_pre']:.1f}", post=f"{metrics['train/return_post']:.1f}",
-                                 kl=f"{metrics['train/kl']:.4f}", learn=f"{metrics['time/learn_s']:.1f}s")
-            if self.iteration % cfg.checkpoint.every == 0 or self.done:  # and always the last one
-                path = self.save()
-        progress.close()
+        with stop_requests() as stop:
+            while not self.done and not stop:
+                metrics = self.step()
+                self.log(metrics)
+                progress.update(1)
+                progress.set_postfix(pre=f"{metrics['train/return_pre']:.1f}",
+                                     post=f"{metrics['train/return_post']:.1f}", kl=f"{metrics['train/kl']:.4f}",
+                                     learn=f"{metrics['time/learn_s']:.1f}s")
+                if self.iteration % cfg.checkpoint.every == 0 or self.done:  # and always the last one
+                    path, saved = self.save(), self.iteration
+            progress.close()
+            if stop and not self.done:
+                path = path if path is not None and saved == self.iteration else self.save()
+                raise stop.stopped(f"after meta-iteration {self.iteration} of {cfg.iterations}", path)
         return {**metrics, "iteration": self.iteration, "checkpoint": str(path)}
 
     def close(self) -> None:
-        """Close the env (and its worker threads) and finish the logger's run."""
+        """Close the env (and its worker threads), finish the logger's run and release ``output_dir``."""
         self.proposal.env.close()
         close_logger(self.logger)
+        self.folder_lock.release()
 
 
 def train(cfg: DictConfig) -> dict:
