@@ -12,6 +12,7 @@ from test_resume import BUDGET, config
 
 from umrl import checkpoints
 from umrl.checkpoints import DIAYN_FORMAT, VIME_FORMAT
+from umrl.checkpoints.diayn import DIAYN_SEEDS_FORMAT
 from umrl.configs import ConfigError
 from umrl.envs import get_env_spec
 from umrl.metatest import CellSpec, run_cell
@@ -122,3 +123,17 @@ def test_a_checkpoint_of_another_proposal_or_env_is_refused_before_meta_test(tmp
                                            rf"expected {expected} \(method '{method}' on point_nav\)$"):
         run_cell(spec)
     assert not list(tmp_path.glob("cell.*"))
+
+
+def test_a_reused_one_seed_diayn_run_is_read_from_its_seed_folder(tmp_path):
+    """A one-seed run's output_dir holds the program's state (``checkpoints/``) beside the seed's skills
+    (``seed0/``): the suite's reuse check and every DIAYN loader read the skills."""
+    _diayn_run(tmp_path / "diayn" / "seed0", num_skills=50)
+    meta = {**dict.fromkeys(DIAYN_SEEDS_FORMAT.meta_keys), "env": "point_nav", "num_skills": 50, "obs_dim": 2,
+            "seeds": [0]}
+    DIAYN_SEEDS_FORMAT.save(Checkpointer(tmp_path / "diayn" / "checkpoints"), 5, meta, {"seed": 0})
+    assert DIAYN_FORMAT.load(tmp_path / "diayn")["format"] == DIAYN_FORMAT.name
+    with pytest.raises(ConfigError, match=r"pretrain.diayn.overrides.num_skills: got 3 \(the reused diayn run .* "
+                                          r"has 50 skills"):
+        plan_pretraining(_suite(tmp_path / "out", f"pretrain.diayn.reuse='{tmp_path}/diayn'", "methods=[diayn_init]",
+                                "+pretrain.diayn.overrides.num_skills=3"), "g", "code")

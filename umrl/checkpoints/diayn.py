@@ -68,6 +68,7 @@ DIAYN_FORMAT = CheckpointFormat(
         Network("discriminator", _discriminator, _discriminator_widths),
     ),
     weights=("loss",),  # the single-run checkpoints written before multi-seed runs hold their SAC loss
+    locate=lambda path: resolve_seed_run(path),  # a one-seed run's output_dir holds the program state beside it
 )
 DIAYN_SEEDS_FORMAT = CheckpointFormat("umrl.diayn_seeds.v1", "multi-seed DIAYN",
                                       meta_keys=(*DIAYN_FORMAT.meta_keys, "seeds"), weights=("loss",))
@@ -118,7 +119,7 @@ def save_diayn_checkpoint(
 def load_diayn_checkpoint(path: str | os.PathLike) -> dict:
     """Load a seed's DIAYN checkpoint: a ``step_*.pt`` file, a ``checkpoints/`` folder, a seed's folder or the
     ``output_dir`` of a run of one seed (the latest file)."""
-    return DIAYN_FORMAT.load(resolve_seed_run(path))
+    return DIAYN_FORMAT.load(path)
 
 
 def export_diayn_skills(source: str | os.PathLike, destination: str | os.PathLike) -> Path:

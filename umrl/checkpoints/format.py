@@ -95,6 +95,8 @@ class CheckpointFormat:
         meta_keys: keys every ``state["meta"]`` of this format carries (checked on save).
         networks: the networks its loaders build (checked: sizes, finite weights, a state dict that loads).
         weights: other entries whose tensors must be finite (e.g. a stacked loss's state dict).
+        locate: maps a path a user gives (a run's folder) to the one :meth:`load` reads (e.g. a DIAYN run's seed
+            folder); None: the path itself.
     """
 
     name: str
@@ -102,6 +104,7 @@ class CheckpointFormat:
     meta_keys: tuple[str, ...]
     networks: tuple[Network, ...] = ()
     weights: tuple[str, ...] = ()
+    locate: Callable[[Path], Path] | None = None
 
     def save(self, checkpointer: Checkpointer, step: int, meta: Mapping[str, Any], config: Any = None,
              **entries: Any) -> Path:
@@ -191,7 +194,7 @@ class CheckpointFormat:
         """Load and check a checkpoint: a ``step_*.pt`` file, a ``checkpoints/`` folder or a run's output_dir
         (the latest ``step_*.pt``); ``FileNotFoundError`` says what was looked for, ``CheckpointError`` names an
         unreadable file."""
-        file = resolve_checkpoint(path)
+        file = resolve_checkpoint(path if self.locate is None else self.locate(Path(path)))
         return self.check(read_checkpoint(file), file)
 
     def load_for_resume(self, checkpointer: Checkpointer, meta: Mapping[str, Any],
