@@ -12,6 +12,20 @@ import torch
 torch.set_num_threads(1)
 
 
+@pytest.fixture(autouse=True)
+def env_registry_as_it_was():
+    """A test that imports a user's env module (``env.module``, examples/own_env.py) registers envs process-wide, and
+    the module is imported once per process: every later test sees the registry and that import cache as before."""
+    from umrl.envs import ENV_NAMES, unregister_env, user_envs
+
+    envs, modules = set(ENV_NAMES), dict(user_envs._FILE_MODULES)
+    yield
+    for name in set(ENV_NAMES) - envs:
+        unregister_env(name)
+    user_envs._FILE_MODULES.clear()
+    user_envs._FILE_MODULES.update(modules)
+
+
 @pytest.fixture
 def tiny_diayn_checkpoint(tmp_path, request):
     """A minimal point_nav DIAYN checkpoint (4 skills, a skill actor and a discriminator with one 16-unit layer each)

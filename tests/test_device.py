@@ -147,7 +147,7 @@ def test_vime_recipe_keeps_everything_on_the_device(tmp_path, device, monkeypatc
     assert saved["dynamics_optimizer"].state, "the dynamics model took no step"
     assert_on(device, **{k: saved[k] for k in ("policy", "dynamics", "dynamics_optimizer", "median_history",
                                               "replay", "holdout", "visited")},
-              batches=[result for _, _, result in seen["collect_env_steps"]])
+              batches=[result for _, _, result in seen["collect"]])
 
 
 @pytest.mark.parametrize("device", DEVICES)
