@@ -259,3 +259,23 @@ def test_discriminator_reward_in_an_env_without_skills_asks_for_a_skill_transfor
 def test_house_format_describes_tensordicts_and_modules_briefly():
     assert str(InvalidValue("x", TensorDict({}, [2, 3]), "y")) == "x: got a TensorDict of batch size [2, 3]; expected y"
     assert str(InvalidType("x", torch.nn.Linear(2, 2), "y")) == "x: got a Linear; expected y"
+
+
+@pytest.mark.parametrize("loader", ["load_maml_policy", "load_diayn_checkpoint", "load_vime_checkpoint"])
+def test_a_checkpoint_path_that_is_not_a_path_is_named(loader):
+    from umrl import checkpoints
+
+    with pytest.raises(InvalidType, match=r"^path: got 123; expected a checkpoint file or run directory"):
+        getattr(checkpoints, loader)(123)
+
+
+@pytest.mark.parametrize("recipe, key", [("maml", "num_threads"), ("diayn", "num_threads"), ("vime", "num_threads")])
+def test_thread_counts_beyond_any_machine_are_refused_before_openmp_aborts(recipe, key):
+    from umrl.configs import ConfigError, validate
+    from umrl.configs.diayn import DIAYNConfig
+    from umrl.configs.maml import MAMLConfig
+    from umrl.configs.vime import VIMEConfig
+
+    schema = {"maml": MAMLConfig, "diayn": DIAYNConfig, "vime": VIMEConfig}[recipe]
+    with pytest.raises(ConfigError, match=rf"{key}: got 100000; expected an integer in \[1, 1024\]"):
+        validate(compose(recipe, [f"{key}=100000"]), schema)

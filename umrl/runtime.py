@@ -28,7 +28,7 @@ from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.record.loggers import Logger, get_logger
 
 from umrl.checkpoint_file import CheckpointError, file_kind, read_state, write_state
-from umrl.validation import check_name
+from umrl.validation import InvalidType, check_name
 
 LOGGER_BACKENDS = ("wandb", "csv", "none")
 
@@ -461,6 +461,13 @@ def _is_regular_file(path: Path) -> bool:
         return False
 
 
+def checkpoint_path(path: Any) -> Path:
+    """``path`` as a :class:`~pathlib.Path`; :class:`~umrl.validation.InvalidType` naming it when it is no path."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise InvalidType("path", path, "a checkpoint file or run directory (a str or os.PathLike)")
+    return Path(path)
+
+
 def resolve_checkpoint(path: str | os.PathLike) -> Path:
     """``path`` if it is a checkpoint file, else the latest ``step_*.pt`` inside the directory ``path`` (or its
     ``checkpoints/`` subfolder). Raises ``FileNotFoundError`` saying what was looked for, and
@@ -472,7 +479,7 @@ def resolve_checkpoint(path: str | os.PathLike) -> Path:
     ...
     umrl.checkpoint_file.CheckpointError: /dev/null is not a regular checkpoint file (a character device); ...
     """
-    path = Path(path)
+    path = checkpoint_path(path)
     try:
         mode = os.stat(path).st_mode  # follows a symlink the user named, opens nothing
     except FileNotFoundError:

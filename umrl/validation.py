@@ -156,6 +156,10 @@ def check_str(name: str, value: Any) -> str:
     return value
 
 
+MAX_THREADS = 1024
+"""The most torch threads a config may ask for: far above any machine umrl runs on, below the counts at which
+OpenMP's runtime aborts the process instead of raising."""
+
 NAME_MAX_BYTES = 255
 """The longest file or folder name (one path component, UTF-8 bytes) Linux file systems accept."""
 

@@ -26,7 +26,14 @@ import torch
 
 from umrl.checkpoint_file import CheckpointError
 from umrl.envs.registry import ENV_NAMES, check_observation_size
-from umrl.runtime import Checkpointer, isolated_rng, read_checkpoint, resolve_checkpoint, to_container
+from umrl.runtime import (
+    Checkpointer,
+    checkpoint_path,
+    isolated_rng,
+    read_checkpoint,
+    resolve_checkpoint,
+    to_container,
+)
 from umrl.validation import InvalidValue
 
 __all__ = ["MAX_LAYERS", "MAX_WIDTH", "CheckpointFormat", "Network", "check_budget_left"]
@@ -194,7 +201,8 @@ class CheckpointFormat:
         """Load and check a checkpoint: a ``step_*.pt`` file, a ``checkpoints/`` folder or a run's output_dir
         (the latest ``step_*.pt``); ``FileNotFoundError`` says what was looked for, ``CheckpointError`` names an
         unreadable file."""
-        file = resolve_checkpoint(path if self.locate is None else self.locate(Path(path)))
+        path = checkpoint_path(path)
+        file = resolve_checkpoint(path if self.locate is None else self.locate(path))
         return self.check(read_checkpoint(file), file)
 
     def load_for_resume(self, checkpointer: Checkpointer, meta: Mapping[str, Any],

@@ -21,7 +21,7 @@ from umrl.configs.validate import (
 from umrl.envs import BACKENDS
 from umrl.envs.user_envs import check_env_name, import_env_module
 from umrl.runtime import LOGGER_BACKENDS
-from umrl.validation import InvalidValue
+from umrl.validation import MAX_THREADS, InvalidValue
 
 LOGGER_MODES = ("offline", "online", "disabled")
 
@@ -69,7 +69,7 @@ class RunConfig:
 
     seed: int = seed()
     device: str = device()
-    num_threads: int = integer(min=1)
+    num_threads: int = integer(min=1, max=MAX_THREADS)
     logger: RunLoggerConfig = group(RunLoggerConfig)
     output_dir: str = writable_dir()
     resume: bool = boolean()

@@ -36,6 +36,7 @@ from umrl.metatest.methods import METHODS, PROPOSALS, Pretraining
 from umrl.metatest.protocol import SGD_SCHEDULES
 from umrl.runtime import Checkpointer
 from umrl.validation import (
+    MAX_THREADS,
     SEED_MAX,
     InvalidType,
     InvalidValue,
@@ -187,7 +188,7 @@ class LauncherConfig:
     """``workers`` (0: inline), torch ``threads`` per job, ``ray_address`` (null: local processes)."""
 
     workers: int = integer(min=0)
-    threads: int = integer(min=1)
+    threads: int = integer(min=1, max=MAX_THREADS)
     ray_address: str | None = checked(check_ray_address)
 
 
