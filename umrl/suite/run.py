@@ -7,6 +7,7 @@ import json
 import signal
 import threading
 import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 
@@ -21,7 +22,24 @@ from umrl.runtime import wandb_dir_default, write_text_atomic
 from umrl.suite.plan import plan, plan_ablation, plan_pretraining
 from umrl.suite.report import report, summarize_timings
 
-__all__ = ["code_version", "run_suite", "suite_group"]
+__all__ = ["code_version", "read_suite_file", "run_suite", "suite_group"]
+
+
+def read_suite_file(path: Path, kind: type):
+    """The JSON ``kind`` (dict or list) the suite keeps in ``path`` (its group, its timings), or None when there is
+    none; a file that is not one (empty, cut, garbage) is named in a ``UserWarning`` and read as none, so a suite
+    neither stops before its work nor loses its report after it."""
+    if not path.exists():
+        return None
+    try:
+        value = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        value = e
+    if isinstance(value, kind):
+        return value
+    warnings.warn(f"{path} is not the {kind.__name__} the suite wrote ({value!r:.80}): starting it afresh",
+                  stacklevel=2)
+    return None
 
 
 def suite_group(cfg: DictConfig) -> str:
@@ -30,8 +48,12 @@ def suite_group(cfg: DictConfig) -> str:
     if cfg.logger.get("group"):
         return str(cfg.logger.group)
     state = Path(cfg.output_dir) / "suite_state.json"
-    if state.exists():
-        return json.loads(state.read_text())["group"]
+    saved = read_suite_file(state, dict)
+    if saved is not None:
+        if isinstance(saved.get("group"), str):
+            return saved["group"]
+        warnings.warn(f"{state} is not the dict the suite wrote (no group name in {saved!r:.80}): starting it afresh",
+                      stacklevel=2)
     group = f"suite-{cfg.profile_name}-{time.strftime('%Y%m%d-%H%M%S')}"
     write_json_atomic(state, {"group": group})
     return group
@@ -84,7 +106,7 @@ def _run_suite(cfg: DictConfig, log: Callable[[str], None]) -> str:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
     timings_file = out / "timings.json"
-    history = json.loads(timings_file.read_text()) if timings_file.exists() else []
+    history = read_suite_file(timings_file, list) or []
     history.append({"wall": time.perf_counter() - start, "jobs": job_times})
     write_json_atomic(timings_file, history)
     cells = [Path(job.args[0].output) for job in jobs if job.key.startswith("cell/")]
