@@ -23,12 +23,10 @@ from typing import Any
 import gymnasium
 import numpy as np
 import torch
-from tensordict import TensorDict, TensorDictBase
-from torchrl.data import Composite, Unbounded
+from tensordict import TensorDict
 from torchrl.envs import Compose, DoubleToFloat, TransformedEnv
-from torchrl.envs.gym_like import BaseInfoDictReader
 
-from umrl.envs.mujoco_gym import EnvRewardToKey, GymnasiumVectorEnv
+from umrl.envs.mujoco_gym import EnvRewardToKey, GymnasiumVectorEnv, InfoPhysicsReader
 from umrl.envs.registry import EnvSpec
 from umrl.envs.tasks import TaskFamily
 from umrl.validation import InvalidType, InvalidValue, describe
@@ -91,27 +89,6 @@ class ComputedPhysicsInfo(gymnasium.Wrapper):
     def step(self, action):
         obs, reward, terminated, truncated, info = self.env.step(action)
         return obs, reward, terminated, truncated, self._with_physics(info)
-
-
-class InfoPhysicsReader(BaseInfoDictReader):
-    """Writes each physics key, float32 ``[B, width]``, by stacking its ``info`` names (a name missing from an
-    ``info``, e.g. a velocity at reset, reads as 0)."""
-
-    def __init__(self, sources: Mapping[str, tuple[str, ...]], num_envs: int, device: torch.device | str = "cpu"):
-        self.sources, self.num_envs = dict(sources), num_envs
-        self._info_spec = Composite({key: Unbounded((num_envs, len(names)), dtype=torch.float32, device=device)
-                                     for key, names in self.sources.items()}, shape=(num_envs,), device=device)
-
-    def __call__(self, info_dict: dict, tensordict: TensorDictBase) -> TensorDictBase:
-        zeros = np.zeros(self.num_envs)
-        for key, names in self.sources.items():
-            cols = [np.asarray(info_dict.get(name, zeros), dtype=np.float32) for name in names]
-            tensordict.set(key, torch.as_tensor(np.stack(cols, -1), device=tensordict.device))
-        return tensordict
-
-    @property
-    def info_spec(self) -> Composite:
-        return self._info_spec
 
 
 def _split_physics(physics: Mapping[str, PhysicsSource]) -> tuple[dict[str, tuple[str, ...]], dict[str, Callable]]:

@@ -8,6 +8,8 @@ itself through the ``"_reset"`` mask.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import gymnasium
 import mujoco
 import numpy as np
@@ -17,7 +19,7 @@ from torchrl.data import Composite, Unbounded
 from torchrl.envs import Compose, DoubleToFloat, GymWrapper, Transform, TransformedEnv
 from torchrl.envs.gym_like import BaseInfoDictReader
 
-from umrl.envs.mujoco_batched import MODEL_SPECS, physics_keys, physics_spec, torso_com_xy
+from umrl.envs.mujoco_batched import MODEL_SPECS, physics_keys, torso_com_xy
 
 # Physics key -> the gymnasium info keys stacked into it (missing keys, e.g. velocities at reset, read as 0).
 _INFO_SOURCES = {
@@ -52,19 +54,19 @@ class CentreOfMassInfo(gymnasium.Wrapper):
         return obs, reward, terminated, truncated, self._with_com(info)
 
 
-class PhysicsInfoReader(BaseInfoDictReader):
-    """Writes env ``name``'s physics keys (float32 ``[B, width]``) from a gymnasium vector env's ``info`` dict."""
+class InfoPhysicsReader(BaseInfoDictReader):
+    """Writes each physics key, float32 ``[B, width]``, by stacking its gymnasium ``info`` names (a name missing from
+    an ``info``, e.g. a velocity at reset, reads as 0): ``sources`` is ``{physics key: (info name, ...)}``."""
 
-    def __init__(self, name: str, num_envs: int, device: torch.device | str = "cpu"):
-        self.num_envs = num_envs
-        self.keys = physics_keys(name)
-        self._info_spec = physics_spec(name, num_envs, device)
-        del self._info_spec["env_reward"]
+    def __init__(self, sources: Mapping[str, tuple[str, ...]], num_envs: int, device: torch.device | str = "cpu"):
+        self.sources, self.num_envs = dict(sources), num_envs
+        self._info_spec = Composite({key: Unbounded((num_envs, len(names)), dtype=torch.float32, device=device)
+                                     for key, names in self.sources.items()}, shape=(num_envs,), device=device)
 
     def __call__(self, info_dict: dict, tensordict: TensorDictBase) -> TensorDictBase:
         zeros = np.zeros(self.num_envs)
-        for key in self.keys:
-            cols = [np.asarray(info_dict.get(src, zeros), dtype=np.float32) for src in _INFO_SOURCES[key]]
+        for key, names in self.sources.items():
+            cols = [np.asarray(info_dict.get(name, zeros), dtype=np.float32) for name in names]
             tensordict.set(key, torch.as_tensor(np.stack(cols, -1), device=tensordict.device))
         return tensordict
 
@@ -130,5 +132,6 @@ def make_gym_mujoco_env(name: str, num_envs: int, *, device: torch.device | str 
         **spec.gym_kwargs,
     )
     env = GymnasiumVectorEnv(vec_env, device=device)
-    env.set_info_dict_reader(PhysicsInfoReader(name, num_envs, device))
+    env.set_info_dict_reader(InfoPhysicsReader({key: _INFO_SOURCES[key] for key in physics_keys(name)}, num_envs,
+                                               device))
     return TransformedEnv(env, Compose(DoubleToFloat(in_keys=["observation"]), EnvRewardToKey()))
