@@ -287,7 +287,7 @@ def collect_env_steps(
         rounds.append(collect(env, policy, num_tasks=num_tasks, horizon=horizon, params=params, cudagraphs=cudagraphs))
         steps = steps + rounds[-1]["mask"].sum((-2, -1))
         if bool((steps >= env_steps).all()):
-            return first_env_steps(torch.cat(rounds, 1), env_steps)
+            return first_env_steps(rounds[0] if len(rounds) == 1 else torch.cat(rounds, 1), env_steps)
 
 
 def first_env_steps(batch: TensorDictBase, env_steps: int) -> TensorDictBase:
