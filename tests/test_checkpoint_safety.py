@@ -12,12 +12,12 @@ from tensordict import TensorDict
 
 import umrl.trainers
 from umrl import checkpoints
-from umrl.checkpoint_file import CheckpointError, LegacyCheckpointError, read_state, write_state
 from umrl.checkpoints import MAML_FORMAT
 from umrl.checkpoints.convert import convert_checkpoint
 from umrl.checkpoints.export_skills import main as export_skills
+from umrl.checkpoints.file import CheckpointError, LegacyCheckpointError, read_checkpoint, write_checkpoint
+from umrl.checkpoints.folder import Checkpointer
 from umrl.proposals import make_proposal
-from umrl.runtime import Checkpointer
 
 LOADERS = ["load_diayn_checkpoint", "load_discriminator", "load_skill_policy", "load_maml_checkpoint",
            "load_maml_policy", "load_vime_checkpoint", "load_vime_dynamics", "load_vime_policy"]
@@ -78,8 +78,8 @@ def test_state_round_trips_exactly(tmp_path):
              "td": TensorDict({"obs": torch.ones(4, 2), ("next", "r"): torch.zeros(4, 1)}, batch_size=[4]),
              "nan": float("nan"), "size": torch.Size([2]), "dtype": torch.float64, "x": np.float32(1.5),
              "__tensor__": "not a tag"}
-    write_state(state, tmp_path / "s.pt")
-    out = read_state(tmp_path / "s.pt")
+    write_checkpoint(state, tmp_path / "s.pt")
+    out = read_checkpoint(tmp_path / "s.pt")
     assert torch.equal(out["w"], state["w"]) and out["b"].dtype == torch.bool
     assert out["n"].dtype == np.uint32 and out["rng"][1].dtype == np.uint32 and out["rng"][0] == "MT19937"
     assert isinstance(out["rng"], tuple) and list(out["opt"]) == [0]
@@ -87,7 +87,7 @@ def test_state_round_trips_exactly(tmp_path):
     assert np.isnan(out["nan"]) and out["size"] == torch.Size([2]) and out["dtype"] is torch.float64
     assert out["x"].dtype == np.float32 and out["__tensor__"] == "not a tag"
     with pytest.raises(TypeError, match=r"entry \.obj is a .*_Touch"):
-        write_state({"obj": _Touch(tmp_path / "m")}, tmp_path / "bad.pt")
+        write_checkpoint({"obj": _Touch(tmp_path / "m")}, tmp_path / "bad.pt")
 
 
 @pytest.mark.parametrize("damage", ["flip", "zero64"])
@@ -107,7 +107,7 @@ def test_a_changed_byte_is_an_error_naming_the_file_and_resume_falls_back(tmp_pa
     with (pytest.warns(UserWarning, match=f"skipping unreadable checkpoint {bad}"),
           pytest.warns(UserWarning, match=f"moved the unreadable checkpoint {bad} aside")):
         path, state = checkpointer.load_latest_valid()
-    assert path.name == "step_1.pt" and state["w"][1] == 1
+    assert path.name == "step_1.safetensors" and state["w"][1] == 1
 
 
 def test_a_changed_header_byte_is_an_error(tmp_path):
@@ -132,8 +132,8 @@ def test_convert_reads_a_trusted_old_file_with_a_warning_and_strips_paths(tmp_pa
         convert_checkpoint(old, tmp_path / "new")
     with pytest.warns(UserWarning, match="unpickles.*only checkpoints you trust"):
         written = convert_checkpoint(old, tmp_path / "new", {"/work/x/diayn/seed0-abc": "results/diayn/seed0"})
-    assert written == tmp_path / "new" / "checkpoints" / "step_3.pt"
-    state = read_state(written)  # a stand-in policy: the format's network checks would refuse it
+    assert written == tmp_path / "new" / "checkpoints" / "step_3.safetensors"
+    state = read_checkpoint(written)  # a stand-in policy: the format's network checks would refuse it
     assert state["config"] == {"output_dir": "new", "diayn_checkpoint": "results/diayn/seed0"}
     assert state["rng"]["numpy"][1].dtype == np.uint32 and torch.equal(state["policy"]["w"], torch.ones(2))
     assert "/tmp" not in (tmp_path / "new" / "checkpoints" / "config.yaml").read_text()

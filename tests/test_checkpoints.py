@@ -2,10 +2,10 @@
 import pytest
 
 from umrl import checkpoints
-from umrl.checkpoint_file import write_state
 from umrl.checkpoints import DIAYN_FORMAT, MAML_FORMAT, VIME_FORMAT, CheckpointFormat
+from umrl.checkpoints.file import write_checkpoint
+from umrl.checkpoints.folder import Checkpointer
 from umrl.configs import check_resume
-from umrl.runtime import Checkpointer
 
 LOADERS = {
     DIAYN_FORMAT: ["load_diayn_checkpoint", "load_discriminator", "load_skill_policy"],
@@ -21,7 +21,7 @@ def test_every_loader_rejects_another_format(tmp_path, fmt):
     for name in LOADERS[fmt]:
         with pytest.raises(ValueError, match=f"not a {fmt.what} checkpoint.*{other.name}"):
             getattr(checkpoints, name)(tmp_path)
-    write_state([1, 2], tmp_path / "step_9.pt")
+    write_checkpoint([1, 2], tmp_path / "step_9.pt")
     with pytest.raises(ValueError, match="format 'list'"):
         fmt.load(tmp_path / "step_9.pt")
 
@@ -59,7 +59,7 @@ def test_a_checkpoint_of_another_observation_size_is_refused_by_every_loader(tmp
     meta = {**dict.fromkeys(fmt.meta_keys), "env": "ant", "obs_dim": 107}
     fmt.save(Checkpointer(tmp_path / "old" / "checkpoints"), 3, meta)
     for name in LOADERS[fmt]:
-        with pytest.raises(ValueError, match=r"observation size: got 107 \(.*checkpoint .*step_3\.pt\); expected "
+        with pytest.raises(ValueError, match=r"observation size: got 107 \(.*checkpoint .*step_3\.safetensors\); expected "
                                              r"105, the observation size of env 'ant'"):
             getattr(checkpoints, name)(tmp_path / "old")
     fmt.save(Checkpointer(tmp_path / "new" / "checkpoints"), 3, {**meta, "obs_dim": 105})

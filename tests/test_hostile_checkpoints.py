@@ -15,13 +15,19 @@ import umrl.checkpoints.diayn
 import umrl.checkpoints.maml
 import umrl.checkpoints.vime
 from umrl import checkpoints
-from umrl.checkpoint_file import FILE_FORMAT, CheckpointError, content_hash, read_state, write_state
 from umrl.checkpoints import DIAYN_FORMAT, MAML_FORMAT, VIME_FORMAT
 from umrl.checkpoints.diayn import DIAYN_SEEDS_FORMAT
+from umrl.checkpoints.file import (
+    FILE_FORMAT,
+    CheckpointError,
+    content_hash,
+    read_checkpoint,
+    write_checkpoint,
+)
+from umrl.checkpoints.folder import Checkpointer
 from umrl.checkpoints.format import MAX_LAYERS, MAX_WIDTH
 from umrl.modules import make_discriminator, make_gaussian_policy, make_skill_actor
 from umrl.modules.bnn import BayesianDynamics
-from umrl.runtime import Checkpointer
 
 
 def write_tree(path, tree_json, tensors=None):
@@ -54,7 +60,7 @@ def test_a_malformed_hash_valid_tree_is_the_checkpoint_error_naming_the_file(tmp
     tree_json, why = MALFORMED_TREES[label]
     path = write_tree(tmp_path / "step_1.pt", tree_json)
     with pytest.raises(CheckpointError, match=rf"cannot read checkpoint {path} \(\d+ bytes\): .*{why}"):
-        read_state(path)
+        read_checkpoint(path)
 
 
 def _fifo(path):
@@ -75,7 +81,7 @@ def test_a_special_file_is_refused_before_a_byte_is_read(tmp_path, kind):
     signal.alarm(10)  # a FIFO read blocks and /dev/zero never ends: fail instead of hanging the suite
     try:
         with pytest.raises(CheckpointError, match=rf"cannot read checkpoint {path} \(a .*\): not a regular file"):
-            read_state(path)
+            read_checkpoint(path)
     finally:
         signal.alarm(0)
 
@@ -86,7 +92,7 @@ def test_an_unreadable_file_is_the_checkpoint_error(tmp_path):
     path = write_tree(tmp_path / "step_1.pt", "1")
     path.chmod(0)
     with pytest.raises(CheckpointError, match=rf"cannot read checkpoint {path} \(not opened\): Permission denied"):
-        read_state(path)
+        read_checkpoint(path)
 
 
 # ---- each format's content: finite numbers, sizes its tensors have, networks that load -------------------------
@@ -173,7 +179,7 @@ def test_non_finite_content_is_refused_by_name_and_resume_falls_back(tmp_path, k
     with pytest.warns(UserWarning, match=rf"skipping unreadable checkpoint {bad}"):
         state = fmt.load_for_resume(Checkpointer(tmp_path / "checkpoints"), meta)
     assert state["meta"] == meta and Checkpointer(tmp_path / "checkpoints").all() == [good]
-    assert (tmp_path / "checkpoints" / "step_2.pt.unreadable").is_file()
+    assert (tmp_path / "checkpoints" / "step_2.safetensors.unreadable").is_file()
 
 
 def test_nan_in_data_that_is_not_a_weight_still_loads(tmp_path):
@@ -243,7 +249,7 @@ def test_weights_of_other_shapes_than_the_meta_describes_are_refused(tmp_path, k
 @pytest.mark.parametrize("meta", [None, [1, 2], "meta"])
 def test_a_meta_that_is_not_a_dict_is_refused(tmp_path, meta):
     path = MAML_FORMAT.save(Checkpointer(tmp_path), 1, dict.fromkeys(MAML_FORMAT.meta_keys))
-    state = read_state(path)
+    state = read_checkpoint(path)
     with pytest.raises(CheckpointError, match=r"\(a MAML checkpoint\): meta is a \w+; expected a dict"):
         MAML_FORMAT.check({**state, "meta": meta}, path)
 
@@ -265,16 +271,16 @@ def test_a_maml_resume_continues_from_the_checkpoint_before_a_tampered_one(tiny_
 
     checkpointer = Checkpointer(tiny_maml_run / "checkpoints")
     good = checkpointer.latest()
-    state = read_state(good)
+    state = read_checkpoint(good)
     state["meta"]["inner_lr"] = math.nan
     tampered = MAML_FORMAT.save(Checkpointer(tiny_maml_run / "checkpoints", keep_all=True),
                                7, state["meta"], state["config"],
                                **{k: v for k, v in state.items() if k not in ("format", "meta", "config")})
     with pytest.warns(UserWarning, match=rf"skipping unreadable checkpoint {tampered}.*meta\.inner_lr = nan"):
         train(compose("maml", [*_tiny_maml_overrides(tiny_maml_run), "iterations=2", "resume=true"]))
-    assert [p.name for p in checkpointer.all()] == ["step_0.pt", "step_1.pt", "step_2.pt"]  # MAML keeps them all
-    assert read_state(checkpointer.latest())["iteration"] == 2
-    assert (tiny_maml_run / "checkpoints" / "step_7.pt.unreadable").is_file()
+    assert [p.name for p in checkpointer.all()] == [f"step_{i}.safetensors" for i in range(3)]  # MAML keeps all
+    assert read_checkpoint(checkpointer.latest())["iteration"] == 2
+    assert (tiny_maml_run / "checkpoints" / "step_7.safetensors.unreadable").is_file()
 
 
 def _tiny_maml_overrides(directory):
@@ -296,7 +302,7 @@ def test_a_write_past_the_file_size_limit_leaves_no_partial_file_and_says_so(tmp
     try:
         with pytest.raises(OSError, match=rf"cannot write checkpoint {path}: .*File too large.*previous checkpoint is "
                                           "intact"):
-            write_state({"w": torch.zeros(100_000)}, path)
+            write_checkpoint({"w": torch.zeros(100_000)}, path)
     finally:
         resource.setrlimit(resource.RLIMIT_FSIZE, limit)
     assert not path.exists()

@@ -8,13 +8,13 @@ MAML    recipes/maml.py     :func:`load_maml_checkpoint`, :func:`load_maml_polic
 VIME    recipes/vime.py     :func:`load_vime_checkpoint`, :func:`load_vime_policy`, :func:`load_vime_dynamics`
 ======  ==================  ==========================================================================
 
-Every loader accepts a ``step_*.pt`` file, a ``checkpoints/`` folder or a run's output_dir (the latest checkpoint),
-and raises ``ValueError`` for a file of another format (:class:`~umrl.checkpoints.format.CheckpointFormat`, whose
+Every loader accepts a ``step_*.safetensors`` file (or a ``step_*.pt`` one, as umrl named them before), a
+``checkpoints/`` folder or a run's output_dir (the latest checkpoint), and raises ``ValueError`` for a file of another format (:class:`~umrl.checkpoints.format.CheckpointFormat`, whose
 ``check_run`` also refuses a run of another env or proposal than a caller expects) and its subclass
-:class:`~umrl.checkpoint_file.CheckpointError`, naming the file, for one umrl cannot have written (non-finite weights
+:class:`~umrl.checkpoints.file.CheckpointError`, naming the file, for one umrl cannot have written (non-finite weights
 or settings, layer sizes its tensors do not have: checked before any network is built); :func:`maml_policy`,
 :func:`skill_policy` and :func:`vime_policy` build the policies from a checkpoint already loaded. Files are
-:mod:`umrl.checkpoint_file`'s: tensors as data, a JSON tree and a content hash, so loading one runs no code and a
+:mod:`umrl.checkpoints.file`'s: tensors as data, a JSON tree and a content hash, so loading one runs no code and a
 changed byte is an error naming the file; the torch.save pickles of older umrl versions are refused and convert with
 ``python -m umrl.checkpoints.convert OLD NEW`` (:mod:`umrl.checkpoints.convert`; trusted files only: it unpickles).
 :func:`export_diayn_skills` (``python -m umrl.checkpoints.export_skills SOURCE DESTINATION``) keeps a finished DIAYN

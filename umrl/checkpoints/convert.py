@@ -1,5 +1,5 @@
 """``python -m umrl.checkpoints.convert OLD NEW``: rewrite a torch.save (pickle) checkpoint of older umrl versions
-in the current format (:mod:`umrl.checkpoint_file`: data only, hash-checked).
+in the current format (:mod:`umrl.checkpoints.file`: data only, hash-checked).
 
 It reads OLD with ``torch.load(weights_only=True)``, torch's restricted unpickler, allowing beyond tensors and
 containers only numpy's array reconstruction (:data:`OLD_FORMAT_GLOBALS`, all that umrl's old checkpoints hold):
@@ -10,8 +10,9 @@ loader refuses the old format.
 Absolute paths are machine-specific: an absolute ``output_dir`` in the config becomes NEW's run directory (relative
 to the working directory when it lies inside it), ``--relocate FROM=TO`` rewrites other values that start with the
 absolute path FROM (e.g. a MAML run's ``diayn_checkpoint``), and any absolute path left is an error listing them.
-NEW may be a file or a run directory (written to ``NEW/checkpoints/step_<N>.pt``, ``N`` from OLD's name); the
-config is written beside it as ``config.yaml``.
+NEW may be a file (named ``*.safetensors``, or ``*.pt`` as umrl named checkpoints before) or a run directory
+(written to ``NEW/checkpoints/step_<N>.safetensors``, ``N`` from OLD's name); the config is written beside it as
+``config.yaml``.
 """
 from __future__ import annotations
 
@@ -27,8 +28,9 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-from umrl.checkpoint_file import write_state
-from umrl.runtime import write_text_atomic
+from umrl.atomic_write import write_text_atomic
+from umrl.checkpoints.file import write_checkpoint
+from umrl.checkpoints.folder import LEGACY_SUFFIX, SUFFIX
 
 OLD_FORMAT_GLOBALS = (np._core.multiarray._reconstruct, np.ndarray, np.dtype,
                       *(type(np.dtype(t)) for t in ("uint32", "uint64", "int64", "float32", "float64", "bool")))
@@ -63,7 +65,8 @@ def absolute_paths(value: Any, prefix: str = "") -> dict[str, str]:
 
 
 def _run_dir(destination: Path) -> Path:
-    """The run directory of a checkpoint file ``.../<run>/checkpoints/step_N.pt`` (else the file's folder)."""
+    """The run directory of a checkpoint file ``.../<run>/checkpoints/step_N.safetensors`` (else the file's
+    folder)."""
     folder = destination.parent
     return folder.parent if folder.name == "checkpoints" else folder
 
@@ -84,8 +87,8 @@ def convert_checkpoint(source: str | os.PathLike, destination: str | os.PathLike
     if not source.is_file():
         raise FileNotFoundError(f"source: got {str(source)!r}; expected a checkpoint file (step_<N>.pt)")
     destination = Path(destination)
-    if destination.suffix != ".pt":
-        destination = destination / "checkpoints" / source.name
+    if destination.suffix not in (SUFFIX, LEGACY_SUFFIX):
+        destination = destination / "checkpoints" / (source.stem + SUFFIX)
     if destination.exists() and destination.resolve() == source.resolve():
         raise ValueError(f"destination: got {str(destination)!r}; expected a path other than the source")
     warnings.warn(UNSAFE_WARNING.format(path=source), UserWarning, stacklevel=2)
@@ -105,7 +108,7 @@ def convert_checkpoint(source: str | os.PathLike, destination: str | os.PathLike
         state["config"] = config
     destination.parent.mkdir(parents=True, exist_ok=True)
     tmp = destination.with_name(destination.name + ".tmp")
-    write_state(state, tmp)
+    write_checkpoint(state, tmp)
     os.replace(tmp, destination)
     if isinstance(config, Mapping):
         write_text_atomic(destination.parent / "config.yaml", OmegaConf.to_yaml(OmegaConf.create(config)))
@@ -116,7 +119,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m umrl.checkpoints.convert", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("source", help="a torch.save checkpoint you trust (it is unpickled)")
-    parser.add_argument("destination", help="the new file (step_<N>.pt) or run directory")
+    parser.add_argument("destination", help="the new file (step_<N>.safetensors) or run directory")
     parser.add_argument("--relocate", action="append", default=[], metavar="FROM=TO",
                         help="rewrite config values starting with the absolute path FROM to start with TO")
     args = parser.parse_args(argv)

@@ -3,8 +3,8 @@ state (``"umrl.diayn_seeds.v1"``).
 
 A run of seeds ``[s, ...]`` in ``<output_dir>`` writes, at every checkpoint:
 
-- ``<output_dir>/seed<s>/checkpoints/step_<frames>.pt`` for each seed, format ``"umrl.diayn.v1"``, a dict (stored by
-  :mod:`umrl.checkpoint_file`) of
+- ``<output_dir>/seed<s>/checkpoints/step_<frames>.safetensors`` for each seed, format ``"umrl.diayn.v1"``, a dict
+  (stored by :mod:`umrl.checkpoints.file`) of
   ``"format"``; ``"meta"``: ``env`` (name), ``obs_dim``, ``act_dim``, ``num_skills``, ``hidden`` (actor/Q widths),
   ``discriminator_hidden``, ``discriminator_observation_key`` (``["observation"]``: D was trained on s_t;
   ``["next", "observation"]`` in checkpoints written before DIAYN scored s_t), ``discriminator_input_dims``
@@ -15,14 +15,14 @@ A run of seeds ``[s, ...]`` in ``<output_dir>`` writes, at every checkpoint:
   hidden=discriminator_hidden, input_dims=discriminator_input_dims)``; ``"counters"``: ``frames`` (env steps of the
   seed), ``updates``, ...; ``"config"``: the run's resolved config with ``seed`` set to this seed (also beside it as
   ``config.yaml``). Every loader here, the MAML recipe's ``diayn_checkpoint`` and the suite read these.
-- ``<output_dir>/checkpoints/step_<frames>.pt``, format ``"umrl.diayn_seeds.v1"``, for ``resume=true``: ``"meta"``
-  (the above and ``seeds``), ``"loss"`` (the state dict of the
+- ``<output_dir>/checkpoints/step_<frames>.safetensors``, format ``"umrl.diayn_seeds.v1"``, for ``resume=true``:
+  ``"meta"`` (the above and ``seeds``), ``"loss"`` (the state dict of the
   :class:`~umrl.objectives.stacked_diayn.StackedDIAYNLoss`: every seed's networks stacked, targets, alpha),
   ``"optimizers"`` (``{"actor", "qvalue", "discriminator"[, "alpha"]}`` Adam state dicts), ``"counters"``
   (``frames``, ``updates``, ``next_eval``, ``next_log``, ``next_checkpoint``, ``update_credit``),
-  ``"random_metrics"``, ``"replay"`` (:func:`umrl.runtime.replay_buffer_state` of the rows ``[S]``), ``"rng"``
-  (:func:`umrl.runtime.rng_state` with each seed's generator), ``"envs"`` (``{"train"}``:
-  :func:`umrl.runtime.env_state`, MuJoCo's reset noise per seed), ``"config"``.
+  ``"random_metrics"``, ``"replay"`` (:func:`umrl.resume_state.replay_buffer_state` of the rows ``[S]``), ``"rng"``
+  (:func:`umrl.rng.rng_state` with each seed's generator), ``"envs"`` (``{"train"}``:
+  :func:`umrl.resume_state.env_state`, MuJoCo's reset noise per seed), ``"config"``.
 
 A single DIAYN checkpoint written before multi-seed runs (``"umrl.diayn.v1"`` with ``loss``, ``optimizers`` and
 ``replay``) still loads everywhere a seed's file does. The loaders take a seed's file or folder, or a run's
@@ -41,10 +41,10 @@ import torch
 from tensordict.nn import TensorDictModule
 from torchrl.modules import ProbabilisticActor
 
+from umrl.checkpoints.folder import Checkpointer
 from umrl.checkpoints.format import CheckpointFormat, Network
 from umrl.modules.discriminator import make_discriminator
 from umrl.modules.sac import make_skill_actor
-from umrl.runtime import Checkpointer
 from umrl.validation import check_writable_dir
 
 
@@ -111,20 +111,20 @@ def save_diayn_checkpoint(
     counters: Mapping[str, int | float],
     config: Any,
 ) -> Path:
-    """Write one seed's skills (the format above) as ``step_<counters["frames"]>.pt``."""
+    """Write one seed's skills (the format above) as ``step_<counters["frames"]>.safetensors``."""
     return DIAYN_FORMAT.save(checkpointer, counters["frames"], meta, config, actor=actor.state_dict(),
                              discriminator=discriminator.state_dict(), counters=dict(counters))
 
 
 def load_diayn_checkpoint(path: str | os.PathLike) -> dict:
-    """Load a seed's DIAYN checkpoint: a ``step_*.pt`` file, a ``checkpoints/`` folder, a seed's folder or the
-    ``output_dir`` of a run of one seed (the latest file)."""
+    """Load a seed's DIAYN checkpoint: a ``step_*.safetensors`` (or ``.pt``) file, a ``checkpoints/`` folder, a
+    seed's folder or the ``output_dir`` of a run of one seed (the latest file)."""
     return DIAYN_FORMAT.load(path)
 
 
 def export_diayn_skills(source: str | os.PathLike, destination: str | os.PathLike) -> Path:
     """Write the trained skills of the DIAYN checkpoint at ``source`` (a file, ``checkpoints/`` folder or run
-    directory: the latest) to ``<destination>/checkpoints/step_<frames>.pt``, with its ``config.yaml``.
+    directory: the latest) to ``<destination>/checkpoints/step_<frames>.safetensors``, with its ``config.yaml``.
 
     The copy keeps :data:`SKILL_ENTRIES` (the skill policy, the discriminator, the counters) and drops the loss,
     optimisers, replay buffer, RNG and env states: :func:`load_discriminator`, :func:`load_skill_policy`, the MAML

@@ -1,6 +1,6 @@
 """The one format/version check every checkpoint loader and every ``resume=true`` goes through.
 
-A umrl checkpoint is a dict (stored by :mod:`umrl.checkpoint_file`: data only, hash-checked) with ``"format"`` (a
+A umrl checkpoint is a dict (stored by :mod:`umrl.checkpoints.file`: data only, hash-checked) with ``"format"`` (a
 versioned name such as ``"umrl.maml.v1"``), ``"meta"`` (what a loader needs to rebuild the networks) and
 format-specific entries. :class:`CheckpointFormat` names one format, the ``meta`` keys its loaders read and the
 networks it holds (:class:`Network`), and does the saving (stamping ``"format"``) and the checked loading.
@@ -9,7 +9,7 @@ A file's hash proves nothing about who wrote it, so the checked loading treats t
 in ``meta`` and every weight must be finite, the layer widths ``meta`` describes must be whole numbers in
 [1, :data:`MAX_WIDTH`] whose weights the file actually holds (checked before any network is built, so a few bytes
 cannot ask for gigabytes), and each network must load into the module ``meta`` describes. A failure is a
-:class:`~umrl.checkpoint_file.CheckpointError` naming the file and the key, and ``resume=true`` falls back to the
+:class:`~umrl.checkpoints.file.CheckpointError` naming the file and the key, and ``resume=true`` falls back to the
 previous checkpoint.
 """
 from __future__ import annotations
@@ -24,16 +24,11 @@ from typing import Any
 
 import torch
 
-from umrl.checkpoint_file import CheckpointError
+from umrl.checkpoints.file import CheckpointError, read_checkpoint
+from umrl.checkpoints.folder import Checkpointer, checkpoint_path, resolve_checkpoint
 from umrl.envs.registry import ENV_NAMES, check_observation_size
-from umrl.runtime import (
-    Checkpointer,
-    checkpoint_path,
-    isolated_rng,
-    read_checkpoint,
-    resolve_checkpoint,
-    to_container,
-)
+from umrl.plain_config import to_container
+from umrl.rng import isolated_rng
 from umrl.validation import InvalidValue
 
 __all__ = ["MAX_LAYERS", "MAX_WIDTH", "CheckpointFormat", "Network", "check_budget_left"]
@@ -115,7 +110,7 @@ class CheckpointFormat:
 
     def save(self, checkpointer: Checkpointer, step: int, meta: Mapping[str, Any], config: Any = None,
              **entries: Any) -> Path:
-        """Write ``{"format": name, "meta": meta, **entries, "config": resolved config}`` as ``step_<step>.pt``
+        """Write ``{"format": name, "meta": meta, **entries, "config": resolved config}`` as ``step_<step>.safetensors``
         (the config also beside it as ``config.yaml``); ``meta`` must carry :attr:`meta_keys`."""
         missing = sorted(set(self.meta_keys) - set(meta))
         if missing:
@@ -127,7 +122,7 @@ class CheckpointFormat:
     def check(self, state: Any, source: str | os.PathLike) -> dict:
         """Return ``state`` if it is a dict of this format whose networks fit their env's observation (where the env is
         registered), else raise ``ValueError`` naming ``source``; content that cannot be what umrl wrote (see the
-        module) raises its subclass :class:`~umrl.checkpoint_file.CheckpointError`."""
+        module) raises its subclass :class:`~umrl.checkpoints.file.CheckpointError`."""
         if not isinstance(state, dict) or state.get("format") != self.name:
             found = state.get("format") if isinstance(state, dict) else type(state).__name__
             raise ValueError(f"{source} is not a {self.what} checkpoint (format {found!r}, expected {self.name!r}).")
@@ -153,7 +148,7 @@ class CheckpointFormat:
         return module
 
     def _unusable(self, source: str | os.PathLike) -> str:
-        """The start of a :class:`~umrl.checkpoint_file.CheckpointError` about what ``source`` holds."""
+        """The start of a :class:`~umrl.checkpoints.file.CheckpointError` about what ``source`` holds."""
         return f"cannot read checkpoint {source} (a {self.what} checkpoint): "
 
     def _weight_entries(self) -> tuple[str, ...]:
@@ -198,8 +193,8 @@ class CheckpointFormat:
         return state
 
     def load(self, path: str | os.PathLike) -> dict:
-        """Load and check a checkpoint: a ``step_*.pt`` file, a ``checkpoints/`` folder or a run's output_dir
-        (the latest ``step_*.pt``); ``FileNotFoundError`` says what was looked for, ``CheckpointError`` names an
+        """Load and check a checkpoint: a ``step_*.safetensors`` (or ``.pt``) file, a ``checkpoints/`` folder or a
+        run's output_dir (the latest checkpoint); ``FileNotFoundError`` says what was looked for, ``CheckpointError`` names an
         unreadable file."""
         path = checkpoint_path(path)
         file = resolve_checkpoint(path if self.locate is None else self.locate(path))

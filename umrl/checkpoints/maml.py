@@ -1,19 +1,19 @@
 """MAML checkpoints, written by ``recipes/maml.py`` (format ``"umrl.maml.v1"``).
 
-A checkpoint is a dict (stored by :mod:`umrl.checkpoint_file`):
+A checkpoint is a dict (stored by :mod:`umrl.checkpoints.file`):
 
 - ``"format"``: ``"umrl.maml.v1"``;
 - ``"meta"``: ``env``, ``proposal`` (diayn | random | oracle), ``obs_dim``, ``act_dim``, ``hidden``, ``init_std``
   (arguments of :func:`umrl.modules.policy.make_gaussian_policy`), ``inner_lr``, ``num_inner_steps``,
   ``first_order``, ``num_tasks``, ``trajectories_per_task``, ``horizon``, ``num_skills`` (None for oracle);
 - ``"policy"``: state dict of the meta-trained initialisation θ;
-- ``"iteration"`` (meta-iterations done), ``"env_steps"``; ``"rng"`` (:func:`umrl.runtime.rng_state`: torch, numpy,
+- ``"iteration"`` (meta-iterations done), ``"env_steps"``; ``"rng"`` (:func:`umrl.rng.rng_state`: torch, numpy,
   python and ``generators["task"]``, the generator that draws meta-batches) and ``"env"`` (the proposal env's
-  :func:`umrl.runtime.env_state`: MuJoCo reset noise), for a bit-identical ``resume=true``;
+  :func:`umrl.resume_state.env_state`: MuJoCo reset noise), for a bit-identical ``resume=true``;
 - ``"config"``: the resolved recipe config (also written beside it as ``config.yaml``).
 
-Files are ``<output_dir>/checkpoints/step_<iteration>.pt``, all kept by default (meta-training ablation); the latest
-is the final initialisation.
+Files are ``<output_dir>/checkpoints/step_<iteration>.safetensors``, all kept by default (meta-training ablation);
+the latest is the final initialisation.
 """
 from __future__ import annotations
 
@@ -25,9 +25,9 @@ from typing import Any
 import torch
 from torchrl.modules import ProbabilisticActor
 
+from umrl.checkpoints.folder import Checkpointer
 from umrl.checkpoints.format import CheckpointFormat, Network
 from umrl.modules.policy import make_gaussian_policy
-from umrl.runtime import Checkpointer
 
 MAML_FORMAT = CheckpointFormat(
     "umrl.maml.v1", "MAML",
@@ -53,7 +53,7 @@ def save_maml_checkpoint(
     env: Mapping[str, Any],
     config: Any,
 ) -> Path:
-    """Write the MAML state above as ``step_<iteration>.pt``."""
+    """Write the MAML state above as ``step_<iteration>.safetensors``."""
     return MAML_FORMAT.save(
         checkpointer, iteration, meta, config,
         policy=policy.state_dict(), iteration=iteration, env_steps=env_steps, rng=dict(rng), env=dict(env),
@@ -61,7 +61,8 @@ def save_maml_checkpoint(
 
 
 def load_maml_checkpoint(path: str | os.PathLike) -> dict:
-    """Load a MAML checkpoint: a ``step_*.pt`` file, a ``checkpoints/`` folder or a run's output_dir (latest)."""
+    """Load a MAML checkpoint: a ``step_*.safetensors`` (or ``.pt``) file, a ``checkpoints/`` folder or a run's
+    output_dir (latest)."""
     return MAML_FORMAT.load(path)
 
 

@@ -1,7 +1,7 @@
 """VIME checkpoints, written by ``recipes/vime.py`` (format ``"umrl.vime.v1"``).
 
-A dict (stored by :mod:`umrl.checkpoint_file`), files ``<output_dir>/checkpoints/step_<iteration>.pt`` (the final one of a run is the
-latest), with
+A dict (stored by :mod:`umrl.checkpoints.file`), files ``<output_dir>/checkpoints/step_<iteration>.safetensors``
+(the final one of a run is the latest), with
 
 - ``"format"``: ``"umrl.vime.v1"``;
 - ``"meta"``: ``env`` (name), ``obs_dim``, ``act_dim``, ``policy_hidden``, ``policy_init_std``, ``dynamics_hidden``,
@@ -11,12 +11,12 @@ latest), with
   ``"action"``, ``"action_log_prob"``);
 - ``"dynamics"``: state dict of :class:`~umrl.modules.bnn.BayesianDynamics` (posterior and running statistics);
 - ``"dynamics_optimizer"``: Adam state; ``"median_history"``: the bonus normaliser's recent medians;
-- ``"replay"`` / ``"holdout"``: the dynamics model's transition buffers (:func:`umrl.runtime.replay_buffer_state`:
+- ``"replay"`` / ``"holdout"``: the dynamics model's transition buffers (:func:`umrl.resume_state.replay_buffer_state`:
   TorchRL's state dict with the storage cut to its filled rows) or ``None`` (``checkpoint.save_replay=false``: a resume is then not faithful);
 - ``"counters"``: ``iteration``, ``frames``; ``"initial_coverage"``: coverage of the untrained policy;
   ``"initial_states"``: the untrained policy's visited states (the coverage figure's baseline); ``"visited"``: the
   cells (or velocity range) visited so far;
-  ``"rng"``: :func:`umrl.runtime.rng_state` (torch, numpy, python); ``"env"``: :func:`umrl.runtime.env_state`
+  ``"rng"``: :func:`umrl.rng.rng_state` (torch, numpy, python); ``"env"``: :func:`umrl.resume_state.env_state`
   (MuJoCo reset noise); ``"config"``: the resolved recipe config (also beside it as ``config.yaml``).
 """
 from __future__ import annotations
@@ -29,10 +29,10 @@ from typing import Any
 import torch
 from torchrl.modules import ProbabilisticActor
 
+from umrl.checkpoints.folder import Checkpointer
 from umrl.checkpoints.format import CheckpointFormat, Network
 from umrl.modules.bnn import BayesianDynamics
 from umrl.modules.policy import make_gaussian_policy
-from umrl.runtime import Checkpointer
 
 VIME_FORMAT = CheckpointFormat(
     "umrl.vime.v1", "VIME",
@@ -70,7 +70,7 @@ def save_vime_checkpoint(
     env: Mapping[str, Any],
     config: Any,
 ) -> Path:
-    """Write the VIME state above as ``step_<counters["iteration"]>.pt``."""
+    """Write the VIME state above as ``step_<counters["iteration"]>.safetensors``."""
     return VIME_FORMAT.save(
         checkpointer, counters["iteration"], meta, config,
         policy=policy.state_dict(), dynamics=dynamics.state_dict(),
@@ -81,7 +81,8 @@ def save_vime_checkpoint(
 
 
 def load_vime_checkpoint(path: str | os.PathLike) -> dict:
-    """Load a VIME checkpoint: a ``step_*.pt`` file, a ``checkpoints/`` folder or a run's output_dir (latest)."""
+    """Load a VIME checkpoint: a ``step_*.safetensors`` (or ``.pt``) file, a ``checkpoints/`` folder or a run's
+    output_dir (latest)."""
     return VIME_FORMAT.load(path)
 
 

@@ -5,7 +5,10 @@ raw tensor bytes, parsed without executing anything the file names, whereas ``we
 unpickler (restricted by an allow-list that has had bypasses in past torch releases) and would need numpy's and
 tensordict's reconstruction functions allow-listed for the RNG states and replay buffers a resume restores.
 
-Layout of a file (``step_<N>.pt``, the name kept for the checkpointer's globbing; :data:`FILE_FORMAT`):
+A file is a safetensors file and is named as one: ``step_<N>.safetensors`` (umrl named the same files ``step_<N>.pt``
+before, and still reads them). safetensors' own tools open it (``safe_open(path, "pt").metadata()`` shows the tree),
+and ``torch.load`` recognises the suffix and hands back the bare tensors ``{"t0": ..., ...}`` (no pickle, no
+``weights_only`` advice); :func:`read_checkpoint` gives the state. Its layout (:data:`FILE_FORMAT`):
 
 - the safetensors tensors ``"t0"``, ``"t1"``, ... : every tensor and numpy array of the state, on the CPU;
 - the safetensors metadata (strings): ``"format"`` = :data:`FILE_FORMAT`; ``"tree"``: the state as JSON, each
@@ -21,7 +24,7 @@ Anything else (an arbitrary object) is refused when saving: a checkpoint holds d
 A file written by torch.save (umrl before :data:`FILE_FORMAT`) is refused with :class:`LegacyCheckpointError`:
 unpickling it could run code. ``python -m umrl.checkpoints.convert OLD NEW`` converts a trusted one.
 
-The hash is an integrity check, not a signature: whoever can write the file can recompute it. So :func:`read_state`
+The hash is an integrity check, not a signature: whoever can write the file can recompute it. So :func:`read_checkpoint`
 treats every file as untrusted input: only a regular file is opened (a FIFO, device or folder is refused before any
 byte is read), tensors never exceed the file's bytes (safetensors checks every offset), numpy dtypes are numeric,
 and any failure while parsing (a tree nested past the recursion limit, a TensorDict whose batch size does not fit
@@ -44,7 +47,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 __all__ = ["FILE_FORMAT", "CheckpointError", "LegacyCheckpointError", "content_hash", "decode", "encode",
-           "file_kind", "read_state", "write_state"]
+           "file_kind", "read_checkpoint", "write_checkpoint"]
 
 FILE_FORMAT = "umrl.checkpoint.v2"
 """The container version (``v1``: the torch.save pickles before it); the recipes' own formats are inside the tree."""
@@ -162,7 +165,7 @@ def content_hash(tree_json: str, tensors: Mapping[str, torch.Tensor]) -> str:
     return digest.hexdigest()
 
 
-def write_state(state: Any, path: str | os.PathLike) -> None:
+def write_checkpoint(state: Any, path: str | os.PathLike) -> None:
     """Write ``state`` to ``path`` in :data:`FILE_FORMAT` (not atomically: the checkpointer writes a ``.tmp``).
 
     A failed write (a full disk, a file-size limit) removes what it wrote and raises ``OSError`` naming ``path``."""
@@ -204,7 +207,7 @@ def _read_regular_file(path: Path) -> bytes:
         mode = os.fstat(fd).st_mode  # of what was opened: no window between a check and the open
         if not stat.S_ISREG(mode):
             raise CheckpointError(f"cannot read checkpoint {path} ({file_kind(mode)}): not a regular file; "
-                                  "give a step_<N>.pt file or a run folder.")
+                                  "give a step_<N>.safetensors (or .pt) file or a run folder.")
         with os.fdopen(os.dup(fd), "rb") as file:
             return file.read()
     except OSError as e:
@@ -213,8 +216,8 @@ def _read_regular_file(path: Path) -> bytes:
         os.close(fd)
 
 
-def read_state(path: str | os.PathLike) -> dict:
-    """The state :func:`write_state` wrote to ``path``, its hash checked; tensors on the CPU.
+def read_checkpoint(path: str | os.PathLike) -> dict:
+    """The state :func:`write_checkpoint` wrote to ``path``, its hash checked; tensors on the CPU.
 
     Raises :class:`CheckpointError` naming ``path`` for anything but a readable regular file in
     :data:`FILE_FORMAT` with a matching hash, whose tree decodes (truncated, corrupted, empty, foreign, special,
