@@ -3,6 +3,7 @@ error naming the key, the bad value and what is accepted (before any work starts
 import dataclasses
 import math
 import typing
+import warnings
 
 import pytest
 import torch
@@ -10,6 +11,7 @@ from omegaconf import OmegaConf
 from script_loading import REPO, compose_config
 
 from umrl.checkpoints import MAML_FORMAT
+from umrl.checkpoints.folder import Checkpointer
 from umrl.configs import ConfigError, check_resume, resume_diff, validate
 from umrl.configs.diayn import DIAYNConfig
 from umrl.configs.maml import MAMLConfig
@@ -17,7 +19,6 @@ from umrl.configs.suite import SuiteConfig
 from umrl.configs.validate import check_partial
 from umrl.configs.vime import VIMEConfig
 from umrl.envs import ENV_NAMES
-from umrl.runtime import Checkpointer
 
 RECIPES = {"diayn": DIAYNConfig, "maml": MAMLConfig, "vime": VIMEConfig}
 SCHEMAS = {**RECIPES, "suite": SuiteConfig}
@@ -110,12 +111,12 @@ NO_GPU = pytest.mark.skipif(torch.cuda.is_available(), reason="device=cuda is va
 
 @pytest.mark.parametrize("name,overrides,line", [
     # silent before: ran with a default, ignored the value or did nothing
-    ("diayn", ["num_skills=0"], "num_skills: got 0; expected null or an integer >= 2"),
+    ("diayn", ["num_skills=0"], "num_skills: got 0; expected an integer >= 2"),
     ("diayn", ["network.discriminator_input_dims=[0,2]"],
      "network.discriminator_input_dims: got [0, 2]; expected null or distinct integers < 2 (point_nav's obs_dim)"),
     pytest.param("maml", ["device=cuda"], "device: got 'cuda' (no CUDA device is available on this machine); "
                  "expected one of 'cpu', 'auto'", marks=NO_GPU),
-    ("maml", ["iterations=-5"], "iterations: got -5; expected null or an integer >= 1"),
+    ("maml", ["iterations=-5"], "iterations: got -5; expected an integer >= 1"),
     ("maml", ["compile=true"], "compile: got True (torch.compile cannot differentiate a compiled graph twice"),
     ("diayn", ["optim.cudagraphs=true"], "optim.cudagraphs: got True; expected false with device=cpu"),
     ("maml", ["cudagraphs=true"], "cudagraphs: got True; expected false with device=cpu"),
@@ -129,11 +130,11 @@ NO_GPU = pytest.mark.skipif(torch.cuda.is_available(), reason="device=cuda is va
     ("maml", ["maml.inner_lr=nan"], "maml.inner_lr: got nan; expected a finite number > 0"),
     ("maml", ["proposal=diayn", "diayn_checkpoint=/no/such/run"],
      ("diayn_checkpoint: got '/no/such/run' (/no/such/run does not exist); expected an existing file or directory "
-     "(a DIAYN run directory or step_*.pt file: proposal=diayn needs it)")),
+     "(a DIAYN run directory or step_*.safetensors file: proposal=diayn needs it)")),
     # obscure before: a crash far from the cause
     ("diayn", ["checkpoint.every=0"], "checkpoint.every: got 0; expected an integer >= 1"),
     ("maml", ["checkpoint.every=0"], "checkpoint.every: got 0; expected an integer >= 1"),
-    ("maml", ["iterations=abc"], "iterations: got 'abc'; expected null or an integer >= 1"),
+    ("maml", ["iterations=abc"], "iterations: got 'abc'; expected an integer >= 1"),
     ("vime", ["iterations=2.5"], "iterations: got 2.5; expected an integer >= 1"),
     ("diayn", ["optim.lr=fast"], "optim.lr: got 'fast'; expected a finite number > 0"),
     ("diayn", ["resume=maybe"], "resume: got 'maybe'; expected true or false"),
@@ -164,7 +165,7 @@ NO_GPU = pytest.mark.skipif(torch.cuda.is_available(), reason="device=cuda is va
     ("suite", ["methods=[scratch,sac]"], ("methods[1]: got 'sac'; expected one of 'uml_diayn', 'uml_random', "
      "'oracle', 'vime_init', 'diayn_init', 'scratch'")),
     ("suite", ["++pretrain.maml.overrides.iterations=-5"],
-     "pretrain.maml.overrides.iterations: got -5; expected null or an integer >= 1"),
+     "pretrain.maml.overrides.iterations: got -5; expected an integer >= 1"),
     ("suite", ["+pretrain.vime.overrides.itrations=5"],
      "pretrain.vime.overrides.itrations: unexpected key; expected one of the keys of VIMEConfig"),
 ])
@@ -175,9 +176,15 @@ def test_bad_input_is_one_clear_error(name, overrides, line):
     assert line.split(";")[0] in str(info.value)
 
 
-def test_report_steps_beyond_k_are_left_out_not_refused():
-    """report.steps lists columns wanted; with a smaller K (protocol.num_steps) the table keeps those within K."""
-    validate(compose("suite", ["protocol.num_steps=3"]), SuiteConfig)  # report.steps [0, 1, 5]: 5 is dropped
+def test_report_steps_beyond_k_are_left_out_with_a_warning_not_refused():
+    """report.steps lists columns wanted; with a smaller K (protocol.num_steps) the table keeps those within K and a
+    warning names the key, the steps left out and K."""
+    with pytest.warns(UserWarning, match=r"report.steps: got \[0, 1, 5\] \(\[5\] left out: K = protocol.num_steps = 3\); "
+                                         r"expected steps <= protocol.num_steps \(3\) to show each in the table"):
+        validate(compose("suite", ["protocol.num_steps=3"]), SuiteConfig)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        validate(compose("suite", ["protocol.num_steps=5"]), SuiteConfig)  # 5 = K: a column
 
 
 def test_missing_reuse_path_is_refused_before_any_work(tmp_path):
@@ -187,7 +194,7 @@ def test_missing_reuse_path_is_refused_before_any_work(tmp_path):
         validate(cfg, SuiteConfig)
     run = tmp_path / "maml_diayn" / "seed0"
     assert (f"pretrain.maml.reuse: got '{template}' (env=point_nav seed=0: {run} has no checkpoint); "
-            "expected a finished run directory holding checkpoints/step_*.pt") in info.value.errors
+            "expected a finished run directory holding checkpoints/step_*.safetensors") in info.value.errors
     for proposal in ("diayn", "random", "oracle"):  # a run with a checkpoint of the method is accepted
         meta = {**dict.fromkeys(MAML_FORMAT.meta_keys, 1), "env": "point_nav", "proposal": proposal, "obs_dim": 2}
         MAML_FORMAT.save(Checkpointer(tmp_path / f"maml_{proposal}" / "seed0" / "checkpoints"), 20, meta)
@@ -224,6 +231,7 @@ def test_resume_diff_lists_changed_keys_except_the_allow_list(tmp_path):
     diff = resume_diff(OmegaConf.to_container(saved), changed)
     assert diff == {"seed": (0, 5), "trpo.max_kl": (0.01, 0.5), "policy.hidden": ([300, 300], [64, 64]),
                     "proposal": ("oracle", "random"), "num_skills": (None, 7), "env.name": ("point_nav", "half_cheetah"),
+                    "default_num_skills": (50, 20), "discriminator_hidden": ([32, 32], [300, 300]),
                     "diayn_checkpoint": ("outputs/diayn/point_nav/seed0", "outputs/diayn/half_cheetah/seed5")}
     with pytest.raises(ConfigError, match=r"trpo\.max_kl: checkpoint has 0\.01, this run has 0\.5"):
         check_resume(saved, changed)

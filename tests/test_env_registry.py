@@ -50,7 +50,7 @@ def line_reward(next_td, action, task):
     return -(next_td["x"] - task).abs()
 
 
-LINE = EnvSpec(name="line", make=LineEnv, obs_dim=1, act_dim=1, num_skills=3,
+LINE = EnvSpec(name="line", make=LineEnv, obs_dim=1, act_dim=1,
                task_family=TaskFamily("line", task_dim=1, low=-1.0, high=1.0, reward_fn=line_reward),
                physics_keys={"x": 1}, coverage_key="x", horizon=10, num_eval_tasks=4)
 
@@ -85,8 +85,8 @@ def test_bad_records_and_names_are_rejected():
         get_env_spec("ant_maml_reward")  # removed: ant carries the MAML code's reward
     with pytest.raises(ValueError, match="coverage_key 'y'"):
         EnvSpec(**{**LINE.__dict__, "coverage_key": "y"})
-    with pytest.raises(ValueError, match="num_skills"):
-        EnvSpec(**{**LINE.__dict__, "num_skills": 0})
+    with pytest.raises(ValueError, match="obs_dim"):
+        EnvSpec(**{**LINE.__dict__, "obs_dim": 0})
     with pytest.raises(ValueError, match="coverage_cell"):
         EnvSpec(**{**LINE.__dict__, "coverage_cell": 0.1})
 

@@ -8,8 +8,8 @@ from script_loading import compose_config
 from umrl.configs import validate
 from umrl.configs.diayn import DIAYNConfig
 from umrl.configs.maml import MAMLConfig
-from umrl.proposals import make_proposal
 from umrl.trainers.diayn import train as train_diayn
+from umrl.trainers.maml import build
 
 
 def recipe(name, overrides=()):
@@ -41,8 +41,10 @@ def test_diayn_networks_are_the_references_layer_size(env, width):
     assert cfg.network.hidden == cfg.network.discriminator_hidden == [width, width]
     cfg = validate(recipe("diayn", [f"env.name={env}", "network.hidden=[64]"]), DIAYNConfig)
     assert (cfg.network.hidden, cfg.network.discriminator_hidden) == ([64], [width, width])
-    random = make_proposal("random", env, num_tasks=1, trajectories_per_task=1, horizon=2) if env == "point_nav" else None
-    if random is not None:  # one cheap env is enough for the proposal's widths
+    maml = validate(recipe("maml", [f"env.name={env}", "proposal=random"]), MAMLConfig)
+    assert maml.discriminator_hidden == [width, width] and maml.default_num_skills == cfg.num_skills
+    if env == "point_nav":  # one cheap env is enough for the proposal's widths
+        random, _, _, _ = build(maml)
         widths = [m.out_features for m in random.env.transform[-1].modules() if isinstance(m, torch.nn.Linear)]
         assert widths[:-1] == [width, width]
         random.env.close()
@@ -52,7 +54,6 @@ def test_every_methods_random_init_is_the_same_draw_for_a_seed(tmp_path):
     """MAML's init for every proposal, VIME's and scratch's: whatever the proposal drew first (a DIAYN checkpoint's
     loading, a random discriminator)."""
     from umrl.metatest.methods import load_initialisation
-    from umrl.trainers.maml import build
 
     train_diayn(compose_config("umrl/configs", "diayn", [
         "+profile=diayn_tiny", "collector.total_frames=160", "collector.frames_per_batch=80",

@@ -122,16 +122,16 @@ def make_proposal(
         env_name: a registered env (:data:`umrl.envs.ENV_NAMES`).
 
     Keyword Args:
-        num_tasks: meta-batch ``T``; ``None``: the number of skills (diayn/random) or the env's
-            :attr:`~umrl.envs.EnvSpec.num_skills` (oracle), i.e. docs/protocol.md's 50/20/20.
+        num_tasks: meta-batch ``T``; ``None``: the number of skills (diayn/random); the oracle needs it (the
+            recipe's ``meta_batch_size``, null: its ``default_num_skills``, docs/protocol.md's 50/20/20).
         trajectories_per_task: ``N`` env copies per task.
         seed: seeds the env and the random discriminator's weights.
         horizon: episode length.
-        num_skills: ``K`` of the random discriminator (default: the env's
-            :attr:`~umrl.envs.EnvSpec.num_skills`); diayn reads it from the checkpoint.
-        diayn_checkpoint: DIAYN run directory or ``step_*.pt`` file (proposal ``diayn`` only).
-        discriminator_hidden: widths of the random discriminator; ``None``: the env's
-            :attr:`~umrl.envs.EnvSpec.diayn_hidden` (DIAYN's discriminator, left at its random initialisation).
+        num_skills: ``K`` of the random discriminator (random proposals need it; the recipe's ``num_skills``, null:
+            its ``default_num_skills``); diayn reads it from the checkpoint.
+        diayn_checkpoint: DIAYN run directory or ``step_*.safetensors`` file (proposal ``diayn`` only).
+        discriminator_hidden: widths of the random discriminator (random proposals need them; the recipe's
+            ``discriminator_hidden``: DIAYN's discriminator, left at its random initialisation).
         device: device of the env's tensors and of the discriminator (MuJoCo physics stays on CPU threads, its
             outputs move once per step); tasks are drawn on the CPU (the same tasks on every device).
         arena: clip point_nav's position to [-arena, arena]² (> 0); ``None``: unbounded, or :data:`RANDOM_ARENA`
@@ -141,8 +141,16 @@ def make_proposal(
         raise ValueError(f"unknown proposal {name!r}; valid choices: {list(PROPOSALS)}.")
     if trajectories_per_task < 1 or (num_tasks is not None and num_tasks < 1):
         raise ValueError(f"need num_tasks >= 1 and trajectories_per_task >= 1, got {num_tasks} and {trajectories_per_task}.")
-    if num_skills is not None and (isinstance(num_skills, bool) or not isinstance(num_skills, int) or num_skills < 1):
-        raise InvalidValue("num_skills", num_skills, "null (the env's default) or an integer >= 1")
+    random = name in ("random", "random_arena")
+    if (num_skills is not None or random) and (isinstance(num_skills, bool) or not isinstance(num_skills, int)
+                                                or num_skills < 1):
+        raise InvalidValue("num_skills", num_skills, f"an integer >= 1 with proposal {name}" if random
+                           else "None (the checkpoint's skill count) or an integer >= 1")
+    if random and not discriminator_hidden:
+        raise InvalidValue("discriminator_hidden", discriminator_hidden,
+                           f"the random discriminator's widths with proposal {name}, e.g. (32, 32)")
+    if name == "oracle" and num_tasks is None:
+        raise InvalidValue("num_tasks", num_tasks, "the meta-batch (an integer >= 1) with proposal oracle")
     device = check_device("device", device)
     n = trajectories_per_task
     spec = get_env_spec(env_name)
@@ -150,23 +158,20 @@ def make_proposal(
         arena = RANDOM_ARENA
     options = {} if arena is None else {"arena": arena}
     if name == "oracle":
-        num_tasks = num_tasks or spec.num_skills
         tasks = spec.task_family.sample(num_tasks, torch.Generator().manual_seed(seed))
         env = make_task_env(env_name, tasks.repeat_interleave(n, 0), seed=seed, horizon=horizon, device=device,
                             **options)
         return TaskProposal(name, env, num_tasks, n, task_reward=env.transform[-1])
     if name == "diayn":
         if diayn_checkpoint is None:
-            raise ValueError("proposal=diayn needs diayn_checkpoint=<DIAYN run dir or step_*.pt file>.")
+            raise ValueError("proposal=diayn needs diayn_checkpoint=<DIAYN run dir or step_*.safetensors file>.")
         from umrl.checkpoints import load_discriminator
 
         discriminator, num_skills, trained_obs_dim = load_discriminator(diayn_checkpoint)
         # the checkpoint's env observation, not D's input width (chosen dims)
         check_observation_size(env_name, trained_obs_dim, f"the discriminator of {diayn_checkpoint}")
     else:
-        num_skills = num_skills or spec.num_skills
-        hidden = spec.diayn_hidden if discriminator_hidden is None else discriminator_hidden
-        discriminator = make_discriminator(spec.obs_dim, num_skills, hidden=hidden, seed=seed)
+        discriminator = make_discriminator(spec.obs_dim, num_skills, hidden=list(discriminator_hidden), seed=seed)
         discriminator = discriminator.eval().requires_grad_(False)
     discriminator = discriminator.to(device)
     num_tasks = num_tasks or num_skills

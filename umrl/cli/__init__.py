@@ -59,13 +59,19 @@ def main(argv: Sequence[str] | None = None) -> None:
 
 
 def run(command: str) -> None:
-    """Run ``command``'s Hydra app on the arguments in ``sys.argv[1:]``: its ``--help`` text registered, its
+    """Run ``command``'s Hydra app on the arguments in ``sys.argv[1:]``: its per-env defaults chosen from
+    ``env.name`` (:func:`~umrl.configs.env_groups.with_env_group_argv`), its ``--help`` text registered, its
     overrides' keys checked against its config (:func:`~umrl.cli.errors.unknown_key_errors`), then its ``main``."""
     # imported here: `umrl --help` and a misspelt command answer without loading torch
     from umrl.cli.errors import full_error_requested, unknown_key_errors
     from umrl.configs import ConfigError
+    from umrl.configs.env_groups import with_env_group_argv
     from umrl.trainers.config import register_help_text
 
+    try:  # env.name=X chooses the recipe's per-env defaults (umrl/configs/<recipe>_env/X.yaml)
+        sys.argv[1:] = with_env_group_argv(command, sys.argv[1:])
+    except ValueError as e:
+        raise SystemExit(f"umrl {command}: {e}") from None
     app = importlib.import_module(f"umrl.cli.{command}")
     register_help_text(app.CONFIG_DIR)
     if not full_error_requested():  # else Hydra raises the composition error with its traceback

@@ -13,8 +13,9 @@ from pathlib import Path
 from typing import Any
 
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, read_write
 
+from umrl.checkpoints.folder import Checkpointer
 from umrl.configs.validate import ConfigError
 from umrl.folder_lock import (
     FolderHoldsRun,
@@ -24,7 +25,7 @@ from umrl.folder_lock import (
     lock_folder,
     reserve_folder,
 )
-from umrl.runtime import Checkpointer
+from umrl.run_folders import named_keys, place_default_run, resume_line
 from umrl.validation import Invalid, check_name, check_writable_dir
 
 NAME_KEYS = ("profile_name", "logger.exp_name")
@@ -41,7 +42,9 @@ class OutputDirCheck(Callback):
     (:data:`PATH_KEYS`, :func:`umrl.validation.check_writable_dir`), then lock ``output_dir`` (a folder in use by
     another run is refused, naming its holder; a recipe's fresh run, ``resume=false``, into a folder holding
     checkpoints too: :func:`umrl.folder_lock.claim_run_folder`) and keep the lock for the run the script starts
-    there (:func:`umrl.folder_lock.reserve_folder`), releasing it when the run ends.
+    there (:func:`umrl.folder_lock.reserve_folder`), releasing it when the run ends. A recipe's ``output_dir``
+    the command line leaves at its default is a family of folders instead: a rerun gets the next one,
+    ``resume=true`` continues the latest, and the line saying so is printed (:mod:`umrl.run_folders`).
 
     A refusal ends the process (``SystemExit`` with the :class:`~umrl.configs.ConfigError` message, status 1):
     Hydra turns any ``Exception`` a callback raises into a warning and carries on."""
@@ -66,13 +69,25 @@ class OutputDirCheck(Callback):
                 break  # hydra.run.dir lies in output_dir: the first fault is the one to fix
         if errors:
             raise SystemExit(str(ConfigError(config_name or "command line", errors)))
-        out = config.output_dir
+        resume, overrides = OmegaConf.select(config, "resume"), OmegaConf.select(config, "hydra.overrides.task")
+        named = named_keys(overrides) if overrides is not None else {"output_dir"}  # no command line: as named
+        notes: list[str] = []
         try:
-            lock = (lock_folder(out) if OmegaConf.select(config, "resume") is None  # the suite: it always resumes
-                    else claim_run_folder(out, resume=OmegaConf.select(config, "resume") is True,
-                                          checkpointers=[Checkpointer(Path(out) / "checkpoints")]))
+            if resume is None:  # the suite: it always resumes
+                lock = lock_folder(config.output_dir)
+            else:  # a recipe: a rerun into its default folder gets a folder of its own (umrl.run_folders)
+                with read_write(config):
+                    lock, notes = place_default_run(config, named)
+                if lock is None:
+                    out = config.output_dir
+                    lock = claim_run_folder(out, resume=resume is True,
+                                            checkpointers=[Checkpointer(Path(out) / "checkpoints")])
+                    line = resume_line(out) if resume is True else None
+                    notes += [line] if line else []
         except (FolderInUse, FolderHoldsRun, *Invalid) as e:
             raise SystemExit(str(e)) from None
+        for note in notes:  # Hydra's logging starts with the job: printed
+            print(note, flush=True)
         self.lock = reserve_folder(lock)
 
     def on_run_end(self, config: DictConfig, config_name: str | None = None, **kwargs: Any) -> None:

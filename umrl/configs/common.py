@@ -20,7 +20,7 @@ from umrl.configs.validate import (
 )
 from umrl.envs import BACKENDS
 from umrl.envs.user_envs import check_env_name, import_env_module
-from umrl.runtime import LOGGER_BACKENDS
+from umrl.loggers import check_logger_backend
 from umrl.validation import MAX_THREADS, InvalidValue
 
 LOGGER_MODES = ("offline", "online", "disabled")
@@ -48,7 +48,7 @@ class BatchedEnvConfig(EnvConfig):
 class LoggerConfig:
     """``backend`` wandb | csv | none, wandb ``project``, ``group`` (null: none) and ``mode``."""
 
-    backend: str = choice(LOGGER_BACKENDS)
+    backend: str = checked(check_logger_backend)  # a $WANDB_DIR wandb could not write is refused
     project: str = string()
     group: str | None = string()
     mode: str = choice(LOGGER_MODES)

@@ -25,30 +25,21 @@ def resolve_seeds(cfg) -> list[int]:
 
 @dataclass
 class NetworkConfig:
-    """Hidden widths of the actor and each Q-network (``hidden``) and of the discriminator; null: the env's
-    ``EnvSpec.diayn_hidden`` (the reference's ``layer_size``: 2 × 32 on point_nav, 2 × 300 on MuJoCo)."""
+    """Hidden widths of the actor and each Q-network (``hidden``) and of the discriminator (the env's defaults:
+    ``umrl/configs/diayn_env/<env>.yaml``); ``discriminator_input_dims``: null (the whole observation) or the
+    observation dims the discriminator sees."""
 
-    hidden: list[int] | None = int_list(min=1, min_len=1)
-    discriminator_hidden: list[int] | None = int_list(min=1, min_len=1)
+    hidden: list[int] = int_list(min=1, min_len=1)
+    discriminator_hidden: list[int] = int_list(min=1, min_len=1)
     discriminator_input_dims: list[int] | None = int_list(min=0, min_len=1, unique=True)
 
 
 @dataclass
-class DIAYNEnvConfig(BatchedEnvConfig):
-    """:class:`BatchedEnvConfig` whose ``horizon`` may be null: the env's ``EnvSpec.diayn_horizon`` (DIAYN's
-    reference episode length, 1000 on MuJoCo)."""
-
-    horizon: int | None = integer(min=1)
-
-
-@dataclass
 class CollectorConfig:
-    """Per seed: ``total_frames`` (null: the env's ``EnvSpec.diayn_frames``), ``frames_per_batch`` between update
-    rounds (null: ``env.num_envs``, one step of each env copy, the reference's interleaving) and
-    ``init_random_frames``."""
+    """Per seed: ``total_frames``, ``frames_per_batch`` between update rounds and ``init_random_frames``."""
 
-    total_frames: int | None = integer(min=1)
-    frames_per_batch: int | None = integer(min=1)
+    total_frames: int = integer(min=1)
+    frames_per_batch: int = integer(min=1)
     init_random_frames: int = integer(min=0)
 
 
@@ -86,32 +77,14 @@ class DIAYNConfig(RunConfig):
 
     seeds: list[int] | None = int_list(min=0, max=SEED_MAX, min_len=1, unique=True)
     log_every: int = integer(min=1)
-    env: DIAYNEnvConfig = group(DIAYNEnvConfig)
-    num_skills: int | None = integer(min=2)
+    env: BatchedEnvConfig = group(BatchedEnvConfig)
+    num_skills: int = integer(min=2)
     network: NetworkConfig = group(NetworkConfig)
     collector: CollectorConfig = group(CollectorConfig)
     replay_buffer: ReplayBufferConfig = group(ReplayBufferConfig)
     optim: OptimConfig = group(OptimConfig)
     eval: EvalConfig = group(EvalConfig)
     checkpoint: CheckpointConfig = group(CheckpointConfig)
-
-    @staticmethod
-    def fill_env_defaults(cfg: dict) -> None:
-        """Null ``env.horizon``, ``network.hidden``, ``network.discriminator_hidden``, ``collector.total_frames`` and
-        ``collector.frames_per_batch`` take their defaults (see :class:`DIAYNEnvConfig`, :class:`NetworkConfig` and
-        :class:`CollectorConfig`); the env's reference budget is rounded up to whole batches, as the trainer runs
-        it."""
-        spec, env, collector = get_env_spec(cfg["env"]["name"]), cfg["env"], cfg["collector"]
-        for key in ("hidden", "discriminator_hidden"):
-            if cfg["network"][key] is None:
-                cfg["network"][key] = list(spec.diayn_hidden)
-        if env["horizon"] is None:
-            env["horizon"] = spec.diayn_horizon
-        if collector["frames_per_batch"] is None:
-            collector["frames_per_batch"] = env["num_envs"]
-        if collector["total_frames"] is None:
-            batch = collector["frames_per_batch"]
-            collector["total_frames"] = -(-spec.diayn_frames // batch) * batch
 
     @staticmethod
     def cross_check(cfg: dict) -> list[str]:
@@ -161,7 +134,7 @@ class DIAYNConfig(RunConfig):
     @staticmethod
     def notices(cfg: dict) -> list[str]:
         """A ``collector.total_frames`` that is not a whole number of collector batches: TorchRL's collector rounds it
-        up (the env defaults are filled in whole batches)."""
+        up."""
         total, batch = cfg["collector"]["total_frames"], cfg["collector"]["frames_per_batch"]
         runs = -(-total // batch) * batch
         if runs == total:
@@ -173,10 +146,8 @@ class DIAYNConfig(RunConfig):
 
 def memory_errors(cfg: dict) -> list[str]:
     """``replay_buffer.size`` and ``collector.frames_per_batch`` transitions of every seed (observations, skill
-    one-hots and action, before and after each step) against the memory of ``device`` (:mod:`umrl.configs.memory`);
-    ``cfg`` has its env defaults filled."""
-    name = cfg["env"]["name"]
-    num_skills = cfg["num_skills"] or get_env_spec(name).num_skills
+    one-hots and action, before and after each step) against the memory of ``device`` (:mod:`umrl.configs.memory`)."""
+    name, num_skills = cfg["env"]["name"], cfg["num_skills"]
     num_seeds = len(cfg["seeds"] or [cfg["seed"]])
     transition = num_seeds * step_bytes(name, extra_floats=2 * num_skills)
     given = f"with env.name={name}, {num_skills} skills and {num_seeds} seed(s)"

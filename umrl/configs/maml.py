@@ -16,8 +16,7 @@ from umrl.configs.common import (
     cudagraphs_errors,
 )
 from umrl.configs.memory import Allocation, allocation_errors, step_bytes
-from umrl.configs.validate import boolean, checked, choice, group, integer, number, string
-from umrl.envs import get_env_spec
+from umrl.configs.validate import boolean, checked, choice, group, int_list, integer, number, string
 from umrl.optim.meta_hvp import META_HVPS
 from umrl.proposals import PROPOSALS
 from umrl.rollout import SAMPLE_BY
@@ -105,7 +104,7 @@ def memory_errors(cfg: Mapping) -> list[str]:
     checkpoint's, unread here: one task is counted."""
     name, horizon, batches = cfg["env"]["name"], cfg["env"]["horizon"], cfg["maml"]["num_inner_steps"] + 1
     tasks = cfg["meta_batch_size"] or (1 if cfg["proposal"] == "diayn" else cfg["num_skills"]
-                                       or get_env_spec(name).num_skills)
+                                       or cfg["default_num_skills"])
     trajectory = tasks * horizon * batches * step_bytes(name)
     what = f"rollouts: {tasks} tasks x {horizon} steps x {batches} batches (pre-update, after each inner step)"
     given = f"with {tasks} tasks, env.horizon={horizon} and env.name={name}"
@@ -129,9 +128,11 @@ class MAMLConfig(RunConfig):
     diayn_checkpoint: str = string()
     num_skills: int | None = integer(min=2)
     meta_batch_size: int | None = integer(min=1)
+    default_num_skills: int = integer(min=2)
+    discriminator_hidden: list[int] = int_list(min=1, min_len=1)
     trajectories_per_task: int = integer(min=1)
     sample_by: str = choice(SAMPLE_BY)
-    iterations: int | None = integer(min=1)
+    iterations: int = integer(min=1)
     policy: PolicyConfig = group(PolicyConfig)
     maml: InnerConfig = group(InnerConfig)
     advantage: AdvantageConfig = group(AdvantageConfig)
@@ -139,12 +140,6 @@ class MAMLConfig(RunConfig):
     checkpoint: CheckpointConfig = group(CheckpointConfig)
     compile: bool = checked(_compile_off)
     cudagraphs: bool = boolean()
-
-    @staticmethod
-    def fill_env_defaults(cfg: dict) -> None:
-        """Null ``iterations``: the env's ``EnvSpec.maml_iterations`` (the MAML reference code's run length)."""
-        if cfg["iterations"] is None:
-            cfg["iterations"] = get_env_spec(cfg["env"]["name"]).maml_iterations
 
     @staticmethod
     def cross_check(cfg: dict) -> list[str]:
@@ -159,6 +154,6 @@ class MAMLConfig(RunConfig):
             try:
                 check_path_exists("diayn_checkpoint", cfg["diayn_checkpoint"])
             except InvalidValue as e:
-                e.expected += " (a DIAYN run directory or step_*.pt file: proposal=diayn needs it)"
+                e.expected += " (a DIAYN run directory or step_*.safetensors file: proposal=diayn needs it)"
                 errors.append(e.message())
         return errors

@@ -11,6 +11,7 @@ from string import Formatter
 from typing import Any
 
 from umrl.checkpoints import load_diayn_checkpoint, load_maml_checkpoint, load_vime_checkpoint
+from umrl.checkpoints.folder import Checkpointer
 from umrl.configs.common import LoggerConfig, compile_errors, cudagraphs_errors
 from umrl.configs.diayn import DIAYNConfig
 from umrl.configs.maml import MAMLConfig, num_skills_errors
@@ -32,9 +33,9 @@ from umrl.configs.validate import (
 )
 from umrl.configs.vime import VIMEConfig
 from umrl.envs import ENV_NAMES
+from umrl.envs.user_envs import import_env_module
 from umrl.metatest.methods import METHODS, PROPOSALS, Pretraining
 from umrl.metatest.protocol import SGD_SCHEDULES
-from umrl.runtime import Checkpointer
 from umrl.validation import (
     MAX_THREADS,
     SEED_MAX,
@@ -202,6 +203,7 @@ class SuiteConfig:
     """Every key of ``umrl/suite/config/suite.yaml`` (after a profile); the yaml's comments say what each does."""
 
     profile_name: str = name()  # a folder name under outputs/suite
+    env_module: str | None = checked(import_env_module)  # before envs: the registry it reads may grow
     envs: list[str] = choice_list(ENV_NAMES, min_len=1)
     methods: list[str] = choice_list(METHODS, min_len=1)
     seeds: list[int] = int_list(min=0, max=SEED_MAX, min_len=1, unique=True)
@@ -256,6 +258,14 @@ class SuiteConfig:
             if run.recipe == "maml" and not _reuse_template(cfg, run):
                 errors += num_skills_errors(run.proposal, maml.get("num_skills"), "pretrain.maml.overrides.num_skills")
         return errors + memory_errors(cfg) + _reuse_errors(cfg)
+
+    @staticmethod
+    def notices(cfg: dict) -> list[str]:
+        """``report.steps`` above K (``protocol.num_steps``): the table has no column for them."""
+        steps, k = cfg["report"]["steps"], cfg["protocol"]["num_steps"]
+        beyond = [step for step in steps if step > k]
+        return [InvalidValue("report.steps", steps, f"steps <= protocol.num_steps ({k}) to show each in the table",
+                             note=f"{beyond} left out: K = protocol.num_steps = {k}").message()] if beyond else []
 
 
 def memory_errors(cfg: Mapping) -> list[str]:
@@ -328,7 +338,7 @@ def _reuse_errors(cfg: dict) -> list[str]:
                     continue
                 if Checkpointer(run_dir / "checkpoints").latest() is None:
                     errors.append(InvalidValue(
-                        key, template, "a finished run directory holding checkpoints/step_*.pt",
+                        key, template, "a finished run directory holding checkpoints/step_*.safetensors",
                         note=f"env={env} seed={seed}: {run_dir} has no checkpoint").message())
                     continue
                 expected = {"env": env, **({"proposal": run.proposal} if run.proposal else {})}

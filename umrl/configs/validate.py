@@ -4,9 +4,7 @@ A schema is a dataclass (usable as a Hydra/OmegaConf structured config) whose fi
 helpers below: each holds the check of :mod:`umrl.validation` that its value must pass, the annotation gives the
 type OmegaConf enforces later and ``Optional[...]`` lets the value be ``null``; nested dataclasses are config
 groups. A schema may define ``cross_check(cfg: dict) -> list[str]`` (error lines) for rules that relate several keys; it runs
-once every key passed its own check. A schema may define ``fill_env_defaults(cfg: dict) -> None``, which replaces the
-``null`` keys whose default depends on the env (read from its :class:`~umrl.envs.EnvSpec`) in place; it runs before
-``cross_check`` (see :func:`fill_env_defaults`). A schema may define ``notices(cfg: dict) -> list[str]`` for values that
+once every key passed its own check. A schema may define ``notices(cfg: dict) -> list[str]`` for values that
 run, but not as written (a budget rounded up, say): each line is a warning once the config passed. Defaults live in the
 yaml files, not here (every field is ``MISSING``).
 """
@@ -23,6 +21,7 @@ from typing import Any
 from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from umrl.configs.env_groups import env_defaults
 from umrl.validation import (
     Invalid,
     bounds_text,
@@ -202,8 +201,6 @@ def validate(cfg: DictConfig | Mapping, schema: type) -> DictConfig:
     node = cfg if isinstance(cfg, DictConfig) else OmegaConf.create(dict(cfg))
     errors: list[str] = []
     values = _check_group(node, schema, "", errors)
-    if not errors:
-        fill_env_defaults(values, schema)
     cross_check = getattr(schema, "cross_check", None)
     if not errors and cross_check is not None:
         errors += cross_check(values)
@@ -212,16 +209,6 @@ def validate(cfg: DictConfig | Mapping, schema: type) -> DictConfig:
     for notice in getattr(schema, "notices", lambda _: [])(values):
         warnings.warn(notice, stacklevel=2)
     return OmegaConf.merge(OmegaConf.structured(schema), values)
-
-
-def fill_env_defaults(values: dict, schema: type) -> dict:
-    """``values`` (a checked config as a plain dict) with its env-dependent ``null`` keys filled in place by
-    ``schema.fill_env_defaults`` when the schema has one (e.g. DIAYN's episode length and budget, MAML's
-    iterations); returned for chaining."""
-    fill = getattr(schema, "fill_env_defaults", None)
-    if fill is not None:
-        fill(values)
-    return values
 
 
 def check_partial(values: Mapping, schema: type, prefix: str = "") -> list[str]:
@@ -259,6 +246,11 @@ RESUME_ADDED = {"compile": False, "network.discriminator_input_dims": None, "env
 a checkpoint's config that lacks one matches a run with that value (MAML's ``compile``, DIAYN's whole-observation
 discriminator, no ``env.module``)."""
 
+RESUME_FROM_ENV = {"num_skills": "diayn", "default_num_skills": "maml", "discriminator_hidden": "maml"}
+"""Keys whose env default runs saved before the per-env config groups (:mod:`umrl.configs.env_groups`) left out of
+their config (DIAYN's ``num_skills`` saved as null, MAML's ``default_num_skills`` and ``discriminator_hidden``
+absent), with the recipe whose group holds that default: such a checkpoint matches a run with the env's default."""
+
 _ABSENT = "<absent>"
 
 
@@ -282,7 +274,8 @@ def resume_diff(
     config and the resumed run's config, except keys under an entry of ``allow`` (see :data:`RESUME_ALLOW`).
 
     A key present on one side only shows ``"<absent>"`` on the other, unless the checkpoint lacks a key of
-    :data:`RESUME_ADDED` that the run sets to the value listed there. Empty when the resume is faithful.
+    :data:`RESUME_ADDED` that the run sets to the value listed there, or a key of :data:`RESUME_FROM_ENV`. Empty
+    when the resume is faithful.
     """
     allow = tuple(allow)
     saved, new = _flatten(_as_plain(saved_cfg)), _flatten(_as_plain(cfg))
@@ -293,9 +286,15 @@ def resume_diff(
         before, after = saved.get(key, _ABSENT), new.get(key, _ABSENT)
         if before is _ABSENT and key in RESUME_ADDED and after == RESUME_ADDED[key]:
             continue
+        if before in (None, _ABSENT) and key in RESUME_FROM_ENV and after == _env_default(key, new["env.name"]):
+            continue
         if before != after:
             diff[key] = (before, after)
     return diff
+
+
+def _env_default(key: str, env_name: str) -> Any:
+    return env_defaults(RESUME_FROM_ENV[key], env_name).get(key, _ABSENT)
 
 
 def check_resume(saved_cfg: DictConfig | Mapping, cfg: DictConfig | Mapping, allow: Iterable[str] = RESUME_ALLOW) -> None:

@@ -1,12 +1,15 @@
 """The built-in environments, one :class:`~umrl.envs.registry.EnvSpec` record each (docs/protocol.md settings).
 
-==============  =======  =======  ======  =========  ====================  ===========================================
-env             obs_dim  act_dim  skills  DIAYN net  tasks                 coverage
-==============  =======  =======  ======  =========  ====================  ===========================================
-point_nav       2        2        50      2 × 32     goals U[-0.5, 0.5]²   final ``"position"``, 0.1 cells
-half_cheetah    17       6        20      2 × 300    speeds U[0, 2]        mean ``"x_velocity"``
-ant             105      8        20      2 × 300    goals U[-3, 3]²       final ``"xy_position"``, 0.25 cells
-==============  =======  =======  ======  =========  ====================  ===========================================
+==============  =======  =======  ====================  ===========================================
+env             obs_dim  act_dim  tasks                 coverage
+==============  =======  =======  ====================  ===========================================
+point_nav       2        2        goals U[-0.5, 0.5]²   final ``"position"``, 0.1 cells
+half_cheetah    17       6        speeds U[0, 2]        mean ``"x_velocity"``
+ant             105      8        goals U[-3, 3]²       final ``"xy_position"``, 0.25 cells
+==============  =======  =======  ====================  ===========================================
+
+The recipes' hyperparameters on each env (skill counts, DIAYN's episode length, budget and widths, MAML's
+iterations) are in ``umrl/configs/diayn_env/<env>.yaml`` and ``umrl/configs/maml_env/<env>.yaml``.
 
 ant is gymnasium's ``Ant-v5`` (its model, dynamics and termination) with the MAML reference code's goal reward
 (:func:`umrl.envs.tasks.ant_goal_reward`) and gymnasium's default observation, x-y excluded as the paper states
@@ -50,23 +53,21 @@ def mujoco_maker(name: str):
 
 
 POINT_NAV = register_env(EnvSpec(
-    name="point_nav", make=make_point_nav, obs_dim=2, act_dim=2, num_skills=50,
+    name="point_nav", make=make_point_nav, obs_dim=2, act_dim=2,
     task_family=TaskFamily("point_nav", task_dim=2, low=-0.5, high=0.5, reward_fn=goal_distance_reward,
                            success_fn=goal_within(0.01)),
-    physics_keys={"position": 2}, coverage_key="position", coverage_cell=0.1, diayn_hidden=(32, 32),
+    physics_keys={"position": 2}, coverage_key="position", coverage_cell=0.1,
 ))
 HALF_CHEETAH = register_env(EnvSpec(
-    name="half_cheetah", make=mujoco_maker("half_cheetah"), obs_dim=17, act_dim=6, num_skills=20,
+    name="half_cheetah", make=mujoco_maker("half_cheetah"), obs_dim=17, act_dim=6,
     task_family=TaskFamily("half_cheetah", task_dim=1, low=0.0, high=2.0, reward_fn=target_velocity_reward),
     physics_keys={"x_position": 1, "x_velocity": 1}, coverage_key="x_velocity", coverage_reduction="mean",
-    diayn_horizon=1000, diayn_frames=10_000_000, maml_iterations=475,
 ))
 ANT = register_env(EnvSpec(
-    name="ant", make=mujoco_maker("ant"), obs_dim=105, act_dim=8, num_skills=20,
+    name="ant", make=mujoco_maker("ant"), obs_dim=105, act_dim=8,
     task_family=TaskFamily("ant", task_dim=2, low=-3.0, high=3.0, reward_fn=ant_goal_reward),
     physics_keys={"xy_position": 2, "xy_com": 2, "x_velocity": 1, "reward_survive": 1, "reward_contact": 1},
     coverage_key="xy_position", coverage_cell=0.25,
-    diayn_horizon=1000, diayn_frames=10_000_000, maml_iterations=375,
 ))
 
 __all__ = ["ANT", "HALF_CHEETAH", "POINT_NAV", "make_point_nav", "mujoco_maker"]

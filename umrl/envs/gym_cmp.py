@@ -202,9 +202,19 @@ def _check_reward(family: TaskFamily, obs_dim: int, act_dim: int, physics: Mappi
                                note=f"it returned {describe(done)}")
 
 
+MOVED_TO_CONFIG = {
+    "num_skills": "num_skills=10 for DIAYN, default_num_skills=10 for MAML",
+    "diayn_horizon": "env.horizon=... for DIAYN",
+    "diayn_frames": "collector.total_frames=... for DIAYN",
+    "diayn_hidden": "network.hidden=[...] network.discriminator_hidden=[...] for DIAYN, discriminator_hidden=[...] "
+                    "for MAML",
+    "maml_iterations": "iterations=... for MAML",
+}
+"""The former :class:`EnvSpec` fields that are recipe settings now, with the keys that set them."""
+
+
 def gym_env_spec(gym_id: str, task_family: TaskFamily, physics: Mapping[str, PhysicsSource], *,
-                 coverage_key: str | None = None, gym_kwargs: Mapping | None = None, num_skills: int = 20,
-                 **fields) -> EnvSpec:
+                 coverage_key: str | None = None, gym_kwargs: Mapping | None = None, **fields) -> EnvSpec:
     """The :class:`EnvSpec` ``gym:<gym_id>`` of gymnasium's ``gym_id`` with the hand-designed ``task_family``.
 
     Args:
@@ -218,15 +228,19 @@ def gym_env_spec(gym_id: str, task_family: TaskFamily, physics: Mapping[str, Phy
         coverage_key: the physics key DIAYN's and VIME's coverage metrics read; default: the first of ``physics``.
         gym_kwargs: keyword arguments of ``gymnasium.make`` (e.g. ``{"exclude_current_positions_from_observation":
             False}``).
-        num_skills: DIAYN's default skill count (MAML's default meta-batch).
         **fields: further :class:`EnvSpec` fields (``coverage_reduction``, ``coverage_cell``, ``horizon``,
-            ``diayn_horizon``, ``diayn_frames``, ``diayn_hidden``, ``maml_iterations``, ``num_eval_tasks``).
+            ``num_eval_tasks``). The recipes' hyperparameters (skill count, DIAYN's episode length and budget,
+            MAML's iterations) are config: ``umrl/configs/<recipe>_env/default.yaml``, or the command line.
 
     Raises:
         InvalidValue / InvalidType: naming the bad argument, its value and what is accepted; one copy of the env is
         built and stepped once to check the spaces, the physics sources and the reward's shape.
     """
     check_gym_id("gym_id", gym_id)
+    moved = sorted(set(fields) & set(MOVED_TO_CONFIG))
+    if moved:
+        raise InvalidValue(moved[0], fields[moved[0]], "no such argument: a recipe setting, given on the command line "
+                           f"or in the overrides of umrl.trainers.train ({MOVED_TO_CONFIG[moved[0]]})")
     if not isinstance(task_family, TaskFamily):
         raise InvalidType("task_family", task_family, "a umrl.envs.TaskFamily (task_dim, low, high, reward_fn)")
     names, functions = _split_physics(physics)
@@ -242,6 +256,5 @@ def gym_env_spec(gym_id: str, task_family: TaskFamily, physics: Mapping[str, Phy
         return make_gym_cmp(gym_id, num_envs, sources=sources, functions=functions, gym_kwargs=gym_kwargs,
                             seed=seed, device=device)
 
-    return EnvSpec(name=name, make=make, obs_dim=obs_dim, act_dim=act_dim, num_skills=num_skills,
-                   task_family=family, physics_keys={key: len(s) for key, s in sources.items()},
+    return EnvSpec(name=name, make=make, obs_dim=obs_dim, act_dim=act_dim, task_family=family, physics_keys={key: len(s) for key, s in sources.items()},
                    coverage_key=coverage_key if coverage_key is not None else next(iter(physics)), **fields)

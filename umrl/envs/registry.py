@@ -1,10 +1,12 @@
 """One record per environment: :class:`EnvSpec` and the registry every table of per-env facts reads from.
 
 An env is added by one :func:`register_env` call (the built-in ones are in :mod:`umrl.envs.builtin`); everything
-that depends on the env (``make_env``, task families and rewards, DIAYN's skill count and MAML's meta-batch, the
-coverage metrics of DIAYN and VIME, the recipes' ``env.name`` choices) reads its :class:`EnvSpec`::
+that depends on the env's physics or tasks (``make_env``, task families and rewards, the coverage metrics of DIAYN
+and VIME, the recipes' ``env.name`` choices) reads its :class:`EnvSpec`. The recipes' per-env hyperparameters
+(DIAYN's skill count, episode length, budget and widths; MAML's iterations) are config, not env facts: they live in
+the recipes' groups, ``umrl/configs/<recipe>_env/<env>.yaml`` (:mod:`umrl.configs.env_groups`)::
 
-    register_env(EnvSpec(name="my_env", make=MyEnv, obs_dim=4, act_dim=2, num_skills=10,
+    register_env(EnvSpec(name="my_env", make=MyEnv, obs_dim=4, act_dim=2,
                          task_family=TaskFamily("my_env", 2, -1.0, 1.0, reward_fn=my_reward),
                          physics_keys={"position": 2}, coverage_key="position"))
 """
@@ -27,7 +29,7 @@ __all__ = ["COVERAGE_REDUCTIONS", "ENV_NAMES", "EnvSpec", "check_observation_siz
 
 @dataclass(frozen=True)
 class EnvSpec:
-    """Everything umrl needs to know about one reward-free environment (CMP).
+    """The physics and task facts umrl needs to know about one reward-free environment (CMP).
 
     Attributes:
         name: the ``env.name`` of the recipes.
@@ -35,7 +37,6 @@ class EnvSpec:
             limit (``make_env`` adds the horizon), zero ``("next", "reward")``, float32 ``"observation"``
             ``[B, obs_dim]``, an ``"action"`` in ``[-1, 1]^act_dim`` and the :attr:`physics_keys` at every step.
         obs_dim, act_dim: observation and action sizes.
-        num_skills: DIAYN's default skill count, which is also MAML's default meta-batch (docs/protocol.md: 50/20/20).
         task_family: the hand-designed tasks (oracle meta-training, meta-test) and their reward.
         physics_keys: ``{key: width}`` written into every step's ``"next"`` (what task rewards and coverage read).
         coverage_key: the physics key whose values show where the agent went (x-y position, forward velocity).
@@ -45,22 +46,12 @@ class EnvSpec:
             1-D coverage (velocity ranges).
         horizon: default episode length of meta-training and meta-test (the paper's path length, 100).
         num_eval_tasks: how many held-out evaluation tasks :meth:`eval_tasks` returns.
-        diayn_horizon: DIAYN's episode length, ``max_path_length`` of DIAYN's reference run for this kind of env
-            (ben-eysenbach/sac ``examples/mujoco_all_diayn.py``: 1000 on the MuJoCo envs, 100 for its point env).
-        diayn_frames: DIAYN's env-step budget in that reference run (``n_epochs × epoch_length``: 10,000 × 1000 =
-            10 M on HalfCheetah and Ant, 50 × 1000 = 50 k for its point env); the recipe's default.
-        diayn_hidden: hidden widths of DIAYN's actor, Q-networks and discriminator in that reference run
-            (``layer_size`` × 2: 300 by default, 32 for its point env, ``ENV_PARAMS['point']``); UML-random's
-            discriminator has the same widths (DIAYN's discriminator left at its random initialisation).
-        maml_iterations: MAML meta-iterations of the reference run (cbfinn/maml_rl: ``maml_trpo_point.py`` runs 100;
-            ``test_maml_cheetah.py`` / ``test_maml_ant.py`` load iterations 475 / 375); the recipe's default.
     """
 
     name: str
     make: Callable[..., EnvBase]
     obs_dim: int
     act_dim: int
-    num_skills: int
     task_family: TaskFamily
     physics_keys: Mapping[str, int]
     coverage_key: str
@@ -68,22 +59,13 @@ class EnvSpec:
     coverage_cell: float | None = None
     horizon: int = 100
     num_eval_tasks: int = 20
-    diayn_horizon: int = 100
-    diayn_frames: int = 50_000
-    diayn_hidden: tuple[int, ...] = (300, 300)
-    maml_iterations: int = 100
 
     def __post_init__(self) -> None:
-        positive = {"obs_dim": self.obs_dim, "act_dim": self.act_dim, "num_skills": self.num_skills,
-                    "horizon": self.horizon, "num_eval_tasks": self.num_eval_tasks,
-                    "diayn_horizon": self.diayn_horizon, "diayn_frames": self.diayn_frames,
-                    "maml_iterations": self.maml_iterations}
+        positive = {"obs_dim": self.obs_dim, "act_dim": self.act_dim, "horizon": self.horizon,
+                    "num_eval_tasks": self.num_eval_tasks}
         bad = {k: v for k, v in positive.items() if not (isinstance(v, int) and v > 0)}
-        if not self.diayn_hidden or not all(isinstance(w, int) and w > 0 for w in self.diayn_hidden):
-            bad["diayn_hidden"] = self.diayn_hidden
         if bad:
-            raise ValueError(f"EnvSpec {self.name!r}: these fields must be positive integers (diayn_hidden: a "
-                             f"non-empty tuple of them), got {bad}.")
+            raise ValueError(f"EnvSpec {self.name!r}: these fields must be positive integers, got {bad}.")
         if self.coverage_key not in self.physics_keys:
             raise ValueError(f"EnvSpec {self.name!r}: coverage_key {self.coverage_key!r} is not one of its "
                              f"physics_keys {sorted(self.physics_keys)}.")

@@ -11,7 +11,6 @@ import os
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass
-from functools import partial
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
@@ -19,14 +18,15 @@ from omegaconf import DictConfig, OmegaConf
 import umrl.trainers
 from umrl.checkpoints import DIAYN_FORMAT, MAML_FORMAT, VIME_FORMAT
 from umrl.checkpoints.diayn import seed_run_dir
+from umrl.checkpoints.folder import Checkpointer
 from umrl.configs import ConfigError
 from umrl.configs.maml import hvp_errors
 from umrl.configs.suite import RECIPE_SCHEMAS, needed_pretraining, pretrain_seeds, reuse_dir
-from umrl.configs.validate import check_partial, fill_env_defaults
+from umrl.configs.validate import check_partial
 from umrl.launch import Job
-from umrl.metatest import CellSpec, Pretraining, cell_finished, default_lr_schedule, get_method, run_cell
+from umrl.metatest import CellSpec, Pretraining, default_lr_schedule, get_method, run_cell
 from umrl.metatest.cache import config_key, keyed_config, mark_done, run_finished
-from umrl.runtime import Checkpointer, to_container
+from umrl.plain_config import to_container
 from umrl.validation import InvalidValue
 
 __all__ = ["BUDGET_KEYS", "PretrainRun", "cell_spec", "checkpoint_identity", "hydra_overrides", "job_key", "keyed_cell",
@@ -183,8 +183,10 @@ def plan_pretraining(cfg: DictConfig, group: str, code: str) -> dict[tuple[str, 
                     runs[run.kind, env, seed] = PretrainRun(run, env, seed, reuse)
                 else:
                     fresh.append(seed)
-            # DIAYN trains all of an env's seeds in one program (stacked networks, one update for all seeds)
-            for seeds in ([fresh] if run.recipe == "diayn" and fresh else [[seed] for seed in fresh]):
+            # DIAYN trains all of an env's seeds in one program (stacked networks, one update for all seeds), but
+            # one program per seed on a gymnasium env (the seeds would share its vector env's reset noise)
+            together = run.recipe == "diayn" and fresh and not env.startswith("gym:")
+            for seeds in ([fresh] if together else [[seed] for seed in fresh]):
                 errors += _plan_fresh(cfg, run, env, seeds, group, code, runs)
     if errors:
         raise ConfigError("suite pre-training configs", errors)
@@ -205,8 +207,6 @@ def _plan_fresh(cfg: DictConfig, run: Pretraining, env: str, seeds: list[int], g
     problems = check_partial(values, RECIPE_SCHEMAS[run.recipe], prefix=f"{name}: ")
     if run.recipe == "maml" and not problems:
         problems = [f"{name}: {error}" for error in hvp_errors(values)]
-    if not problems:  # env-dependent defaults (budgets, DIAYN's episode length) enter the run's key
-        fill_env_defaults(values, RECIPE_SCHEMAS[run.recipe])
     budget = OmegaConf.select(OmegaConf.create(values), BUDGET_KEYS[run.recipe])
     if budget is None:
         problems.append(f"{name}: the recipe config has no {BUDGET_KEYS[run.recipe]!r} (its budget); "
@@ -309,7 +309,7 @@ def plan(cfg: DictConfig, group: str, code: str = "", runs: Mapping | None = Non
                     settings = cell_spec(cfg, method.name, env, seed, checkpoint, lr_schedule=schedule)
                     spec = keyed_cell(settings, checkpoint_id, code, out / "cells" / env / method.name / f"seed{seed}{suffix}")
                     key = f"cell/{env}/{method.name}/seed{seed}{suffix.replace('.', '/')}"
-                    jobs[key] = Job(key=key, fn=run_cell, args=(spec,), deps=deps, done=partial(cell_finished, spec.output),
+                    jobs[key] = Job(key=key, fn=run_cell, args=(spec,), deps=deps, done=spec.finished,
                                     what=f"meta-test of {method.name} on {env}, seed {seed} -> {spec.output}",
                                     log=out / "logs" / f"cell_{env}_{method.name}_seed{seed}{suffix}.log")
     # Pre-training first, runs others depend on before them (DIAYN before MAML(diayn)), so the critical path starts at once.
@@ -325,7 +325,7 @@ def _ablation_job(cfg: DictConfig, settings: Mapping, checkpoint_id: str | None,
     """The ablation's meta-test job of ``settings``, its files under ``<output_dir>/ablation/<path>``."""
     out = Path(cfg.output_dir).absolute()
     spec = keyed_cell(settings, checkpoint_id, code, out / "ablation" / path)
-    return Job(key=f"ablation/{path}", fn=run_cell, args=(spec,), done=partial(cell_finished, spec.output), what=what,
+    return Job(key=f"ablation/{path}", fn=run_cell, args=(spec,), done=spec.finished, what=what,
                log=out / "logs" / f"ablation_{path.replace('/', '_')}.log")
 
 

@@ -1,7 +1,8 @@
 """The trainers' configs: composed by name from the defaults in ``umrl/configs/<name>.yaml`` with Hydra overrides.
 
 The yaml files ship with the package (the one place each default lives; the schemas beside them,
-:mod:`umrl.configs.maml` etc., say what is accepted). The recipes' command lines read the same files
+:mod:`umrl.configs.maml` etc., say what is accepted); an env's defaults are the recipe's group file for it,
+chosen from ``env.name`` (:mod:`umrl.configs.env_groups`). The recipes' command lines read the same files
 (``@hydra.main(config_path="pkg://umrl.configs")``).
 
 Example:
@@ -21,13 +22,13 @@ from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig, OmegaConf
 
 import umrl.configs
+from umrl.configs.env_groups import with_env_group
+from umrl.metatest.method_table import RECIPES
 
 CONFIG_DIR = Path(umrl.configs.__file__).resolve().parent
 """Where the trainers' default configs live (``diayn.yaml``, ``maml.yaml``, ``vime.yaml``)."""
 
-TRAINERS = ("diayn", "maml", "vime")
-
-__all__ = ["CONFIG_DIR", "TRAINERS", "check_name", "compose", "config_dir", "register_help_text"]
+__all__ = ["CONFIG_DIR", "RECIPES", "check_name", "compose", "config_dir", "register_help_text"]
 
 
 @contextmanager
@@ -46,17 +47,17 @@ def config_dir(directory: str | Path = CONFIG_DIR) -> Iterator[None]:
 
 
 def check_name(name: str) -> None:
-    """Refuse a name that is not one of :data:`TRAINERS`."""
-    if name not in TRAINERS:
-        raise ValueError(f"unknown recipe {name!r}; valid choices: {list(TRAINERS)}.")
+    """Refuse a name that is not one of :data:`~umrl.metatest.RECIPES`."""
+    if name not in RECIPES:
+        raise ValueError(f"unknown recipe {name!r}; valid choices: {list(RECIPES)}.")
 
 
 def compose(name: str, overrides: Sequence[str] = ()) -> DictConfig:
-    """The config of trainer ``name`` with command-line style ``overrides`` (``["env.name=ant", "seed=3"]``); a
-    misspelt key fails here, as on the command line."""
+    """The config of trainer ``name`` with command-line style ``overrides`` (``["env.name=ant", "seed=3"]``: ant's
+    defaults, :func:`~umrl.configs.env_groups.with_env_group`); a misspelt key fails here, as on the command line."""
     check_name(name)
     with config_dir():
-        return hydra_compose(name, overrides=list(overrides))
+        return hydra_compose(name, overrides=with_env_group(name, overrides))
 
 
 def register_help_text(directory: str | Path = CONFIG_DIR) -> None:
