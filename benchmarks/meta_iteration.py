@@ -8,26 +8,29 @@
     python benchmarks/meta_iteration.py --device auto --threads 16 --hvp-fraction 0.1 --repeats 5
     python benchmarks/meta_iteration.py --device cuda --collection eager cudagraphs   # collection replayed from a CUDA graph
 
-One meta-iteration is the MAML recipe's own (``umrl.trainers.maml.build`` and ``umrl.trainers.maml.meta_iteration`` on the
-composed ``umrl/configs/maml.yaml`` with the preset's overrides, oracle tasks): pre-update collection with θ and
-advantages, the inner adaptation (with the graph the meta-step reuses), post-update collection with every task's
-adapted parameters ("collect" = both collections and advantages), then the TRPO meta-step ("learn" = inner
-adaptation + TRPO step). A second line splits "learn" into the recipe's ``time/`` parts: the inner adaptation, the
-surrogate and KL through it, the search direction (the gradient with the Hessian-vector product set-up, and the
-conjugate-gradient products) and the line search, with the median number of trials.
+One meta-iteration is the MAML recipe's own: ``step()`` of a :class:`umrl.trainers.MAMLTrainer` on the
+composed ``umrl/configs/maml.yaml`` with the preset's overrides, oracle tasks (its checkpoint 0 goes to a
+temporary folder, removed at the end): pre-update collection with θ and advantages, the inner adaptation (with
+the graph the meta-step reuses), post-update collection with every task's adapted parameters ("collect" = both
+collections and advantages), then the TRPO meta-step ("learn" = inner adaptation + TRPO step). A second line
+splits "learn" into the recipe's ``time/`` parts: the inner adaptation, the surrogate and KL through it, the
+search direction (the gradient with the Hessian-vector product set-up, and the conjugate-gradient products)
+and the line search, with the median number of trials.
 
-The **arithmetic floor** is the learning step's matmul FLOPs (``umrl.profiling.flop_counter`` over one
-untimed warm-up step) divided by the device's matmul rate, measured in the same run (one large ``torch.mm`` at the
-configured thread count before every round of iterations, median); ``learn / floor`` is how far the step is from that
-bound. Each ``--task-loop`` variant (``batched``: one batched matmul per layer for all tasks; ``loop``: a Python loop
-over tasks; ``vmap``), ``--collection`` variant (``eager``: TorchRL's ``env.rollout``; ``cudagraphs``: the recipe's
-``cudagraphs=true``, each rollout replayed from a CUDA graph, point_nav on CUDA only) and ``--hvp`` variant (the
-recipe's ``trpo.hvp``: ``gauss_newton`` by autograd, ``analytic`` the same product by hand, with ``batched`` only)
-gets its own policy from the same seed, so all variants do the same work; their iterations are interleaved and the
-medians of ``--repeats`` runs are printed with same-run ratios. ``--metrics`` prints every
-iteration's TRPO numbers in full precision (same seed, same numbers: compare before/after a change). ``--heap
-release`` runs with glibc's default malloc instead of keeping freed memory (``umrl.heap``); the header line prints
-the process's peak resident memory for the comparison.
+The **arithmetic floor** is the learning step's matmul FLOPs (a ``umrl.profiling.flop_counter`` over each of
+its parts in one untimed warm-up step, entered and left by the trainer's ``pre_phase`` / ``post_phase`` hooks
+around ``inner_step`` and ``meta_step``) divided by the device's matmul rate, measured in the same run (one
+large ``torch.mm`` at the configured thread count before every round of iterations, median); ``learn / floor``
+is how far the step is from that bound. Each ``--task-loop`` variant (``batched``: one batched matmul per
+layer for all tasks; ``loop``: a Python loop over tasks; ``vmap``), ``--collection`` variant (``eager``:
+TorchRL's ``env.rollout``; ``cudagraphs``: the recipe's ``cudagraphs=true``, each rollout replayed from a CUDA
+graph, point_nav on CUDA only) and ``--hvp`` variant (the recipe's ``trpo.hvp``: ``gauss_newton`` by autograd,
+``analytic`` the same product by hand, with ``batched`` only) gets its own policy from the same seed, so all
+variants do the same work; their iterations are interleaved and the medians of ``--repeats`` runs are printed
+with same-run ratios. ``--metrics`` prints every iteration's TRPO numbers in full precision (same seed, same
+numbers: compare before/after a change). ``--heap release`` runs with glibc's default malloc instead of
+keeping freed memory (``umrl.heap``); the header line prints the process's peak resident memory for the
+comparison.
 """
 from __future__ import annotations
 
@@ -35,17 +38,16 @@ import argparse
 import json
 import resource
 import statistics
+import tempfile
 
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-from umrl.configs import validate
-from umrl.configs.maml import HVP_MODES, MAMLConfig
+from umrl.configs.maml import HVP_MODES
 from umrl.process import tune_process
 from umrl.profiling import flop_counter, matmul_rate
-from umrl.runtime import rng_state, seed_everything, set_rng_state
-from umrl.trainers import compose
-from umrl.trainers.maml import build, meta_iteration
+from umrl.rng import rng_state, set_rng_state
+from umrl.trainers import MAMLTrainer, compose
 
 PRESETS = {  # recipe overrides (env.horizon stays the recipe's 100)
     "reference": ["env.name=point_nav", "meta_batch_size=40", "trajectories_per_task=20", "policy.hidden=[100,100]",
@@ -56,29 +58,40 @@ PRESETS = {  # recipe overrides (env.horizon stays the recipe's 100)
                      "policy.hidden=[300,300]", "maml.inner_lr=0.1"],
 }
 TASK_LOOP = {"batched": "null", "loop": "true", "vmap": "false"}
+LEARNING_PHASES = ("inner_step", "meta_step")
+"""The parts of ``MAMLTrainer.step`` that make its learning step (the query collection runs between them)."""
 
 
 class Variant:
-    """The recipe's policy/loss/TRPO for one ``maml.task_loop`` and its meta-iterations; variants share the global
-    RNGs, so each keeps (and restores) its own streams."""
+    """The recipe's trainer for one variant (``overrides`` name its ``output_dir``) and its meta-iterations;
+    variants share the global RNGs, so each keeps (and restores) its own streams."""
 
     def __init__(self, overrides: list[str]):
-        self.cfg = validate(compose("maml", overrides), MAMLConfig)
-        self.generator = seed_everything(self.cfg.seed)  # as the recipe: same init, tasks and data for every variant
-        self.proposal, self.policy, self.loss, self.trpo = build(self.cfg, self.generator)
+        self.trainer = MAMLTrainer(compose("maml", overrides))  # seeded as the recipe: same init, tasks, data
+        self.cfg, self.proposal = self.trainer.cfg, self.trainer.proposal
         self.rng = rng_state()
+        self.counters: list[FlopCounterMode] | None = None
+        self.trainer.register_op("pre_phase", self._count_flops)
+        self.trainer.register_op("post_phase", self._stop_counting)
+
+    def _count_flops(self, trainer: MAMLTrainer, phase: str) -> None:
+        if self.counters is not None and phase in LEARNING_PHASES:
+            self.counters.append(flop_counter())  # one per part: a counter entered twice forgets the first
+            self.counters[-1].__enter__()
+
+    def _stop_counting(self, trainer: MAMLTrainer, phase: str) -> None:
+        if self.counters is not None and phase in LEARNING_PHASES:
+            self.counters[-1].__exit__(None, None, None)
 
     def iteration(self, counters: list[FlopCounterMode] | None = None) -> dict[str, float]:
         """One meta-iteration; with ``counters`` each part of the learning step runs under a new FLOP counter
         appended to it (their sum is the step's FLOPs)."""
-
-        def counter() -> FlopCounterMode:
-            counters.append(flop_counter())
-            return counters[-1]
-
         set_rng_state(self.rng)
-        metrics = meta_iteration(self.cfg, self.proposal, self.policy, self.loss, self.trpo, self.generator,
-                                 **({"learn_context": counter} if counters is not None else {}))
+        self.counters = counters
+        try:
+            metrics = self.trainer.step()
+        finally:
+            self.counters = None
         self.rng = rng_state()
         return metrics
 
@@ -108,11 +121,12 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     heap = "kept" if tune_process(keep_freed_memory=args.heap == "keep")["kept_freed_memory"] else "glibc default"
 
+    scratch = tempfile.TemporaryDirectory(prefix="meta_iteration_")  # the trainers' checkpoint 0
     variants = {
         "/".join([loop] + [part for part, options in ((collection, args.collection), (hvp, args.hvp))
                            if len(options) > 1]):
             Variant([*overrides, f"maml.task_loop={TASK_LOOP[loop]}", f"cudagraphs={collection == 'cudagraphs'}",
-                     f"trpo.hvp={hvp}"])
+                     f"trpo.hvp={hvp}", f"output_dir={scratch.name}/{loop}_{collection}_{hvp}"])
         for loop in args.task_loop for collection in args.collection for hvp in args.hvp
         if hvp != "analytic" or loop == "batched"  # the hand-derived product needs the task-batched MLP
     }
@@ -162,6 +176,9 @@ def main() -> None:
               f"(gradient and HVP set-up {direction - cg:.2f} s, {cfg.trpo.cg_iters} CG products {cg:.2f} s, "
               f"{hvp} HVP) + line search {search:.2f} s "
               f"({trials:.0f} trials)")
+    for variant in variants.values():
+        variant.trainer.close()
+    scratch.cleanup()
 
 
 if __name__ == "__main__":

@@ -87,7 +87,7 @@ def test_env_outputs_live_on_the_device(device, env_name):
 @pytest.mark.parametrize("name", ["oracle", "random"])
 def test_proposal_env_discriminator_and_batches_on_the_device(device, name):
     proposal = make_proposal(name, "point_nav", num_tasks=2, trajectories_per_task=3, horizon=5, num_skills=4,
-                             device=device)
+                             discriminator_hidden=[8], device=device)
     proposal.resample(torch.Generator().manual_seed(0))
     policy = make_gaussian_policy(2, 2, hidden=[8]).to(device)
     batch = collect(proposal.env, policy, num_tasks=2, horizon=5)
@@ -178,7 +178,7 @@ def test_metatest_cell_runs_on_the_device(tmp_path, device, monkeypatch):
 
 def test_a_checkpoint_written_on_a_gpu_loads_on_the_cpu(tmp_path):
     """The checkpoint file stores every tensor as CPU data: what a GPU run saves loads on this machine."""
-    from umrl.checkpoint_file import encode
+    from umrl.checkpoints.file import encode
 
     if torch.cuda.is_available():
         _, tensors = encode({"w": torch.ones(2, device="cuda")})

@@ -3,8 +3,8 @@ import pytest
 import torch
 
 from umrl.checkpoints import load_maml_checkpoint, load_maml_policy
+from umrl.checkpoints.folder import Checkpointer
 from umrl.modules import policy_log_std
-from umrl.runtime import Checkpointer
 from umrl.trainers import compose
 from umrl.trainers.maml import train
 
@@ -29,7 +29,7 @@ def test_two_iterations_per_proposal(tmp_path, proposal, tiny_diayn_checkpoint):
     assert 0 < result["time/cg_s"] < result["time/direction_s"] < result["time/learn_s"]  # the step's parts nest
     assert result["train/kl"] <= 0.01
     files = Checkpointer(out / "checkpoints").all()
-    assert [p.name for p in files] == ["step_0.pt", "step_1.pt", "step_2.pt"]
+    assert [p.name for p in files] == ["step_0.safetensors", "step_1.safetensors", "step_2.safetensors"]
     initial = load_maml_checkpoint(files[0])
     assert initial["iteration"] == 0 and initial["env_steps"] == 0  # the ablation's "before meta-training" point
     state = load_maml_checkpoint(out)

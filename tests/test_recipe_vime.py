@@ -6,9 +6,9 @@ from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.modules import ProbabilisticActor
 
-from umrl.checkpoint_file import write_state
 from umrl.checkpoints import load_vime_checkpoint, load_vime_dynamics, load_vime_policy
-from umrl.runtime import load_replay_buffer_state
+from umrl.checkpoints.file import write_checkpoint
+from umrl.resume_state import load_replay_buffer_state
 from umrl.trainers import compose
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
@@ -29,7 +29,7 @@ def tiny_config(output_dir, *overrides):
 
 
 def stored_transitions(state) -> int:
-    """Transitions in a checkpoint's replay + held-out buffers (:func:`umrl.runtime.replay_buffer_state`)."""
+    """Transitions in a checkpoint's replay + held-out buffers (:func:`umrl.resume_state.replay_buffer_state`)."""
     total = 0
     for key in ("replay", "holdout"):
         buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(1000))
@@ -83,7 +83,7 @@ def test_resume_without_checkpoint_and_bad_config(tmp_path):
         recipe.train(tiny_config(tmp_path, "dynamics.holdout_fraction=0"))
     control = recipe.train(tiny_config(tmp_path / "control", "bonus.shuffle=true", "iterations=1"))
     assert control["bonus/intrinsic_return"] == pytest.approx(control["bonus/intrinsic_mean"] * 10, rel=1e-4)
-    write_state({"format": "other"}, tmp_path / "step_1.pt")
+    write_checkpoint({"format": "other"}, tmp_path / "step_1.pt")
     with pytest.raises(ValueError, match="not a VIME checkpoint"):
         load_vime_policy(tmp_path / "step_1.pt")
 

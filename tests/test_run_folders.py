@@ -57,6 +57,7 @@ def test_a_fresh_run_into_an_earlier_runs_folder_is_refused_before_any_work(tmp_
 
 def test_a_second_trainer_in_a_folder_in_use_is_refused_and_close_frees_it(tmp_path):
     first = MAMLTrainer(config("maml", tmp_path))
+    first.setup()  # writes checkpoint 0, which the resumed run below starts from
     with pytest.raises(FolderInUse, match=rf"output_dir {tmp_path} is in use by this process \(pid {os.getpid()} "):
         MAMLTrainer(config("maml", tmp_path, "resume=true"))
     first.close()
@@ -130,7 +131,7 @@ def test_a_folder_name_over_255_bytes_is_refused_before_any_work(tmp_path):
 
 KILLED_SAVE = """
 import sys, torch
-from umrl.runtime import Checkpointer
+from umrl.checkpoints.folder import Checkpointer
 Checkpointer(sys.argv[1]).save({"weights": torch.zeros(%d)}, 1)
 """
 

@@ -16,8 +16,9 @@ from umrl import suite
 from umrl.configs import validate
 from umrl.configs.suite import SuiteConfig
 from umrl.launch import Job, LocalLauncher
+from umrl.loggers import close_logger, make_logger, wandb_dir_default
 from umrl.metatest import iqm, read_rows
-from umrl.runtime import close_logger, make_logger, wandb_dir_default
+from umrl.suite.report import CURVE_COLUMNS
 from umrl.trainers import compose
 
 TINY = ["env.horizon=10", "meta_batch_size=2", "trajectories_per_task=3", "policy.hidden=[16]", "progress=false",
@@ -44,7 +45,7 @@ def test_each_train_call_in_one_process_gets_its_own_finished_run(tmp_path, offl
     def crash(*args, **kwargs):
         raise RuntimeError("a job that fails after its logger started")
 
-    monkeypatch.setattr(maml, "meta_iteration", crash)
+    monkeypatch.setattr(maml, "meta_step", crash)
     with pytest.raises(RuntimeError, match="fails after"):
         maml.train(compose("maml", [*TINY, "seed=2", f"output_dir={tmp_path / '2'}"]))
     runs = _by_seed(offline_runs(offline_wandb))
@@ -79,7 +80,7 @@ def test_multirun_files_default_under_outputs():
     with umrl.trainers.config_dir():
         from hydra import compose as hydra_compose
 
-        for name in umrl.trainers.TRAINERS:
+        for name in umrl.trainers.RECIPES:
             cfg = hydra_compose(name, return_hydra_config=True)
             assert cfg.hydra.sweep.dir.startswith(f"outputs/multirun/{name}/"), name
 
@@ -120,8 +121,8 @@ def test_the_suites_wandb_dir_reaches_its_workers_and_never_overrides_the_users(
 def test_a_suites_runs_sit_in_its_wandb_folder_with_group_job_type_config_and_tables(tmp_path, monkeypatch):
     """A tiny suite (oracle: one MAML pre-training in a worker process, one meta-test cell): every run in
     <output_dir>/wandb, listed by `wandb sync --dry-run` there; one group; the meta-test run carries the suite's
-    whole config, its curve as a table of IQM and CI per k (equal to the IQM of results.csv's returns) and its rows
-    of the results table."""
+    whole config, its curve as a table of IQM, mean and their CIs per k (equal to those of results.csv's returns), as
+    an image of the band, and its rows of the results table; the report run holds every curve row and the figure."""
     monkeypatch.delenv("WANDB_DIR", raising=False)
     monkeypatch.setenv("WANDB_MODE", "offline")
     tiny_maml = ("{iterations: 1, meta_batch_size: 2, trajectories_per_task: 2, env: {horizon: 10}, "
@@ -144,16 +145,22 @@ def test_a_suites_runs_sit_in_its_wandb_folder_with_group_job_type_config_and_ta
                                                                                          ["oracle"], 2)
     assert config["protocol"]["num_steps"] == 2 and config["launcher"]["workers"] == 1
     curve = meta_test.table("meta_test/curve")
-    assert curve["columns"] == ["k", "iqm", "iqm_low", "iqm_high"] and [row[0] for row in curve["data"]] == [0, 1, 2]
+    assert curve["columns"] == CURVE_COLUMNS and [row[:3] for row in curve["data"]] == [
+        [k, "point_nav", "oracle"] for k in (0, 1, 2)]
     rows = read_rows([tmp_path / "results.csv"])
-    for k, value, low, high in curve["data"]:
-        assert value == pytest.approx(float(iqm(np.array([r["return"] for r in rows if r["step"] == k]))))
-        assert low <= value <= high
-    assert "meta_test/curve_plot_table" in meta_test.tables
+    for k, _, _, value, low, high, mean, mean_low, mean_high in curve["data"]:
+        returns = np.array([r["return"] for r in rows if r["step"] == k])
+        assert value == pytest.approx(float(iqm(returns))) and mean == pytest.approx(float(returns.mean()))
+        assert low <= value <= high and mean_low <= mean <= mean_high
+    assert len(meta_test.metrics["meta_test/return"]) == 3
+    for run, key in ((meta_test, "meta_test/curve_band"), (runs["report"], "report/curves")):
+        image = run.path / "files" / run.images[key]  # the run's own copy (the band's figure file was temporary)
+        assert not image.is_symlink() and image.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert runs["report"].table("meta_test/curves")["data"] == curve["data"]  # one arm: every curve row is its own
     results = meta_test.table("results")
     by_metric = {record["metric"]: record for record in (dict(zip(results["columns"], row)) for row in results["data"])}
     assert sorted(by_metric) == ["auc", "return_k0", "return_k2"]
     for k in (0, 2):  # the curve's band at k is the summary table's IQM and CI at k
         record = by_metric[f"return_k{k}"]
-        assert curve["data"][k][1:] == pytest.approx([record["iqm"], record["iqm_low"], record["iqm_high"]])
+        assert curve["data"][k][3:6] == pytest.approx([record["iqm"], record["iqm_low"], record["iqm_high"]])
     assert runs["report"].table("results")["data"] == results["data"]  # one arm: the report's table is its rows

@@ -1,14 +1,20 @@
 """Training as library objects, one module per algorithm, built from a config composed by name.
 
-Each trainer is built from its config, ``step()`` advances it and returns the step's metrics, ``state_dict()`` /
-``load_state_dict()`` hold what a resumed run needs, ``log(metrics)`` sends them to the configured logger,
-``train()`` runs to the budget (logged, checkpointed) and ``close()`` releases the envs; each module's
-``train(cfg)`` does all of it in one call.
+Each trainer is a :class:`~umrl.trainers.base.Trainer`, built from its config without I/O: ``setup()`` (run by
+the first ``step()`` or ``train()``) opens the logger and writes what a run starts with, ``step()`` advances
+it and returns the step's metrics, ``state_dict()`` / ``load_state_dict()`` hold what a resumed run needs,
+``save()`` writes a checkpoint, ``log(metrics)`` sends metrics to the configured logger, ``train()`` runs to
+the budget (logged, evaluated, checkpointed), ``register_op(point, op)`` adds a hook
+(:mod:`umrl.trainers.base` lists the points) and ``close()`` releases the envs; each module's ``train(cfg)``
+does all of it in one call.
 
-- :mod:`umrl.trainers.maml`: :class:`MAMLTrainer` (meta-training on proposed tasks) and the meta-iteration's parts (:func:`~umrl.trainers.maml.build`,
-  :func:`~umrl.trainers.maml.meta_batch`, :func:`~umrl.trainers.maml.meta_step`).
+- :mod:`umrl.trainers.base`: :class:`~umrl.trainers.base.Trainer` (the loop, the hook points, setup and
+closing).
+- :mod:`umrl.trainers.maml`: :class:`MAMLTrainer` (meta-training on proposed tasks) and the meta-iteration's
+  parts (:func:`~umrl.trainers.maml.build`, :func:`~umrl.trainers.maml.meta_batch`,
+  :func:`~umrl.trainers.maml.meta_step`).
 - :mod:`umrl.trainers.diayn`: :class:`DIAYNTrainer` (skill discovery, the task proposal; ``step`` is one collector
-  batch, ``checkpoint`` saves and restarts the collector's episodes).
+  batch, ``save`` also restarts the collector's episodes).
 - :mod:`umrl.trainers.vime`: :class:`VIMETrainer` (VIME pre-training, the VIME-init baseline).
 - :mod:`umrl.trainers.config`: :func:`compose` (defaults in ``umrl/configs/<name>.yaml`` plus Hydra overrides).
 
@@ -26,12 +32,12 @@ from __future__ import annotations
 import importlib
 from collections.abc import Sequence
 
-from umrl.trainers.config import CONFIG_DIR, TRAINERS, check_name, compose, config_dir
+from umrl.trainers.config import CONFIG_DIR, RECIPES, check_name, compose, config_dir
 from umrl.trainers.diayn import DIAYNTrainer
 from umrl.trainers.maml import MAMLTrainer
 from umrl.trainers.vime import VIMETrainer
 
-__all__ = ["CONFIG_DIR", "TRAINERS", "DIAYNTrainer", "MAMLTrainer", "VIMETrainer", "compose", "config_dir", "train"]
+__all__ = ["CONFIG_DIR", "RECIPES", "DIAYNTrainer", "MAMLTrainer", "VIMETrainer", "compose", "config_dir", "train"]
 
 
 def train(name: str, overrides: Sequence[str] = ()) -> dict:

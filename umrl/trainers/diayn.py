@@ -26,10 +26,10 @@ skills' end points (``end_pairwise_distance``, ``centroid_pairwise_distance``, `
 ``centroid_std``/``range`` for half_cheetah's velocities), ``task_distance_median``/``max``, the same for a uniformly
 random policy under ``eval/random_*`` (once); ``time/`` env steps/s and seed-updates/s (all seeds), elapsed seconds.
 
-Files: per seed ``<output_dir>/seed<s>/checkpoints/step_<frames>.pt`` (format ``umrl.diayn.v1`` with the seed's
+Files: per seed ``<output_dir>/seed<s>/checkpoints/step_<frames>.safetensors`` (format ``umrl.diayn.v1`` with the seed's
 skills: every DIAYN loader, the MAML recipe's ``diayn_checkpoint`` and the suite read it) and
 ``<output_dir>/seed<s>/figures/``; the program's whole state for ``resume=true`` in
-``<output_dir>/checkpoints/step_<frames>.pt`` (format ``umrl.diayn_seeds.v1``, :mod:`umrl.checkpoints.diayn`):
+``<output_dir>/checkpoints/step_<frames>.safetensors`` (format ``umrl.diayn_seeds.v1``, :mod:`umrl.checkpoints.diayn`):
 networks, Adam states, counters, the replay, every generator and the env's reset noise. A resumed run finishes
 bit-identical to an uninterrupted one in every tensor of its checkpoint.
 """
@@ -39,7 +39,6 @@ import time
 from pathlib import Path
 
 import torch
-import tqdm
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
 from torchrl.objectives import SoftUpdate
@@ -49,46 +48,32 @@ from umrl.checkpoints.diayn import (
     save_diayn_checkpoint,
     seed_run_dir,
 )
+from umrl.checkpoints.folder import Checkpointer
 from umrl.checkpoints.format import check_budget_left
 from umrl.configs import RESUME_ALLOW, check_resume, validate
 from umrl.configs.diayn import DIAYNConfig, resolve_seeds
 from umrl.envs import get_env_spec, make_env
 from umrl.envs.threads import torch_threads_beside_physics
 from umrl.folder_lock import claim_run_folder, releases_folder_on_error
+from umrl.loggers import log_image
 from umrl.modules.discriminator import make_discriminator
 from umrl.modules.sac import make_skill_actor, make_skill_qvalue
 from umrl.objectives.diayn import DIAYNLoss
 from umrl.objectives.stacked_diayn import StackedDIAYNLoss, StackedDIAYNUpdate, tanh_normal_sample
-from umrl.runtime import (
-    Checkpointer,
-    check_finite,
-    close_logger,
-    env_state,
-    isolated_rng,
-    load_env_state,
-    log_image,
-    log_metrics,
-    make_logger,
-    rng_state,
-    set_rng_state,
-)
+from umrl.resume_state import env_state, load_env_state
+from umrl.rng import isolated_rng, rng_state, set_rng_state
 from umrl.seed_replay import SeedReplay
-from umrl.signals import stop_requests
 from umrl.skill_coverage import coverage_metrics, evaluate_skills, plot_coverage
+from umrl.trainers.base import Trainer
 from umrl.transforms.discriminator_reward import skill_reward
 from umrl.transforms.skill import SkillTransform
-from umrl.validation import resolve_device
+from umrl.validation import check_not_diverged, resolve_device
 
-__all__ = ["DIAYNTrainer", "evaluate", "make_skill_env", "resolve_num_skills", "train"]
+__all__ = ["DIAYNTrainer", "evaluate", "make_skill_env", "train"]
 
 TRANSITION_KEYS = ("observation", "skill", "action", ("next", "observation"), ("next", "skill"),
                    ("next", "terminated"))
 """What the replay keeps of each env step (what :class:`StackedDIAYNLoss` reads, its noise aside)."""
-
-
-def resolve_num_skills(cfg: DictConfig) -> int:
-    """``num_skills``, or the env's default (:attr:`umrl.envs.EnvSpec.num_skills`) when it is null."""
-    return cfg.num_skills if cfg.num_skills is not None else get_env_spec(cfg.env.name).num_skills
 
 
 def make_skill_env(cfg: DictConfig, num_envs: int, num_skills: int, seed: int, generators=None):
@@ -145,30 +130,39 @@ def seed_networks(cfg: DictConfig, seed: int, obs_dim: int, act_dim: int, num_sk
     return loss
 
 
-class DIAYNTrainer:
+class DIAYNTrainer(Trainer):
     """DIAYN for ``seeds`` (or ``[seed]``) from a config (checked against :class:`~umrl.configs.diayn.DIAYNConfig`).
 
     Construction builds every seed's networks (:func:`seed_networks`), stacks them into one loss and update, builds
-    the batched training env (``env.num_envs`` copies per seed), the evaluation env and the replay, scores a
-    uniformly random policy with each seed's initial discriminator (logged once under ``eval/random_*``), and with
-    ``cfg.resume`` restores the latest program checkpoint (:meth:`load_state_dict`).
+    the batched training env (``env.num_envs`` copies per seed), the evaluation env and the replay, and with
+    ``cfg.resume`` restores the latest program checkpoint (:meth:`load_state_dict`). :meth:`setup` (run by the
+    first :meth:`step` or :meth:`train`) rolls out a uniformly random policy (the evaluations' baseline),
+    scores it with each seed's initial discriminator (logged once under ``eval/random_*``) and opens the
+    logger.
 
     Construction first locks ``output_dir`` until :meth:`close` (:func:`umrl.folder_lock.claim_run_folder`: a folder
     another run uses, or one holding checkpoints while ``cfg.resume`` is false, is refused before any work).
 
-    :meth:`step` takes ``collector.frames_per_batch`` env steps per seed, then the updates they earn, and an
-    evaluation when one is due; :meth:`checkpoint` saves the program and each seed's skills, then restarts the
-    episodes (so an uninterrupted run continues exactly as a resumed one; with episodes of a whole number of
-    checkpoint intervals nothing is cut); :meth:`train` steps to ``collector.total_frames`` per seed. A config that
-    differs from the checkpoint's beyond ``umrl.configs.RESUME_ALLOW`` (or in ``checkpoint.every``) is refused.
-    Nothing process-wide is set (:mod:`umrl.process`).
+    :meth:`step` takes ``collector.frames_per_batch`` env steps per seed, then the updates they earn;
+    :meth:`evaluate` rolls out every seed's skills; :meth:`save` saves the program and each seed's skills,
+    then restarts the episodes (so an uninterrupted run continues exactly as a resumed one; with episodes of a
+    whole number of checkpoint intervals nothing is cut); :meth:`train` steps to ``collector.total_frames``
+    per seed, evaluating every ``eval.every`` frames and at the end (the loop and its hook points are
+    :class:`~umrl.trainers.base.Trainer`'s). A config that differs from the checkpoint's beyond
+    ``umrl.configs.RESUME_ALLOW`` (or in ``checkpoint.every``) is refused. Nothing process-wide is set
+    (:mod:`umrl.process`).
     """
+
+    name = "diayn"
+    stop_message = "at {progress} of {budget} frames per seed"
+    progress_unit = "frames"
 
     @releases_folder_on_error
     def __init__(self, cfg: DictConfig):
+        super().__init__()
         self.cfg = cfg = validate(cfg, DIAYNConfig)
         self.seeds = seeds = resolve_seeds(cfg)
-        self.num_skills = num_skills = resolve_num_skills(cfg)
+        self.num_skills = num_skills = cfg.num_skills
         self.device = device = torch.device(resolve_device("device", cfg.device))
         self.output_dir = Path(cfg.output_dir)
         self.checkpointer = Checkpointer(self.output_dir / "checkpoints", keep_all=cfg.checkpoint.keep_all)
@@ -192,6 +186,9 @@ class DIAYNTrainer:
         state = (DIAYN_SEEDS_FORMAT.load_for_resume(self.checkpointer, self.meta,
                                                     lambda saved: check_resume(saved, cfg, allow))
                  if cfg.resume else None)
+        if state is not None:
+            check_budget_left("collector.total_frames", cfg.collector.total_frames,
+                              state["counters"]["frames"], "frames", self.output_dir)
 
         # --- networks, loss, optimisers: each seed's as a single-seed run builds them, then stacked --------
         self.seed_losses = [seed_networks(cfg, s, obs_dim, act_dim, num_skills).to(device) for s in seeds]
@@ -202,13 +199,6 @@ class DIAYNTrainer:
         self.counters = {"frames": 0, "updates": 0, "next_eval": cfg.eval.every, "next_log": cfg.log_every,
                          "next_checkpoint": cfg.checkpoint.every, "update_credit": 0.0}
         self._interval = self._new_interval()
-        if state is not None:
-            self.loss.load_state_dict(state["loss"])
-            for name, optimizer in self.update.optimizers.items():
-                optimizer.load_state_dict(state["optimizers"][name])
-            self.counters.update(state["counters"])
-            check_budget_left("collector.total_frames", cfg.collector.total_frames, self.counters["frames"], "frames",
-                              self.output_dir)
 
         # --- data ---------------------------------------------------------------------------------------
         self.env = make_skill_env(cfg, S * n, num_skills, seeds[0], self.generators)
@@ -224,35 +214,57 @@ class DIAYNTrainer:
                          "updates_per_frame": cfg.optim.updates_per_frame, "total_frames": cfg.collector.total_frames,
                          "log_every": cfg.log_every, "eval_every": cfg.eval.every}
 
-        self.logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, job_type="diayn", config=cfg,
-                                  log_dir=self.output_dir)
-        self.eval_env.set_seed(seeds[0] + 10_000)
-        with isolated_rng():
-            torch.manual_seed(seeds[0])
-            self.baseline = evaluate_skills(self.eval_env, None, env_name=cfg.env.name, num_skills=num_skills,
-                                            episodes_per_skill=cfg.eval.episodes_per_skill, horizon=cfg.env.horizon)
-        if state is not None:  # scored by the initial discriminators, logged once
-            self.random_metrics = dict(state["random_metrics"])
-        else:
-            self.random_metrics = {}
-            for i in range(S):
-                scores = coverage_metrics(self.baseline, num_skills, self.seed_losses[i].discriminator,
-                                          env_spec.eval_tasks())
-                self.random_metrics.update({f"{self.prefix(i)}eval/random_{k}": v for k, v in scores.items()})
-            log_metrics(self.logger, self.random_metrics, self.counters["frames"])
+        self.baseline: dict | None = None  # the random policy's rollouts (setup)
+        self.random_metrics: dict[str, float] = {}  # their scores by the initial discriminators (setup)
         if state is not None:
             self.load_state_dict(state)
-        self._carry = self.env.reset()
-        self.start_time = time.perf_counter()
+        else:
+            self._carry = self.env.reset()
 
     def prefix(self, index: int) -> str:
         """The metric prefix of seed ``seeds[index]``: none for a single seed, ``seed<s>/`` for several."""
         return "" if len(self.seeds) == 1 else f"seed{self.seeds[index]}/"
 
     @property
-    def done(self) -> bool:
-        """Whether the budget (``collector.total_frames`` per seed) is reached."""
-        return self.counters["frames"] >= self.settings["total_frames"]
+    def progress(self) -> int:
+        """Env frames per seed so far."""
+        return self.counters["frames"]
+
+    @property
+    def budget(self) -> int:
+        return self.settings["total_frames"]
+
+    def _setup(self) -> dict[str, float]:
+        """The uniformly random policy's rollouts of every skill (the evaluations' baseline, drawn from the
+        seeds' own streams: the training's do not move) and, unless a run's state holds them, their scores by
+        each seed's initial discriminator (returned, to be logged once)."""
+        cfg, seed = self.cfg, self.seeds[0]
+        self.eval_env.set_seed(seed + 10_000)
+        with isolated_rng():
+            torch.manual_seed(seed)
+            self.baseline = evaluate_skills(self.eval_env, None, env_name=cfg.env.name,
+                                            num_skills=self.num_skills,
+                                            episodes_per_skill=cfg.eval.episodes_per_skill,
+                                            horizon=cfg.env.horizon)
+        if self.random_metrics:
+            return {}
+        eval_tasks = get_env_spec(cfg.env.name).eval_tasks()
+        for i, loss in enumerate(self.seed_losses):
+            scores = coverage_metrics(self.baseline, self.num_skills, loss.discriminator, eval_tasks)
+            self.random_metrics.update({f"{self.prefix(i)}eval/random_{k}": v for k, v in scores.items()})
+        return self.random_metrics
+
+    def _evaluation_due(self) -> bool:
+        """Every ``eval.every`` frames."""
+        due = self.counters["frames"] >= self.counters["next_eval"]
+        self.counters["next_eval"] += self.settings["eval_every"] * due
+        return due
+
+    def _checkpoint_due(self, before: int) -> bool:
+        """Every ``checkpoint.every`` frames (a schedule the counters keep: a resumed run continues it)."""
+        due = self.counters["frames"] >= self.counters["next_checkpoint"]
+        self.counters["next_checkpoint"] += self.cfg.checkpoint.every * due
+        return due
 
     def state_dict(self) -> dict:
         """Stacked networks, Adam states, counters, the random policy's metrics, the replay, every generator (the
@@ -267,14 +279,22 @@ class DIAYNTrainer:
         return {f"seed{s}": g for s, g in zip(self.seeds, self.generators)}
 
     def load_state_dict(self, state: dict) -> None:
-        """Restore the replay, the generators and the env's state (networks, optimisers and counters are restored at
-        construction); the episodes then restart as the saved run's did right after saving."""
+        """Restore :meth:`state_dict`'s (or a program checkpoint's) state; the episodes then restart as the
+        saved run's did right after saving."""
+        self.loss.load_state_dict(state["loss"])
+        for name, optimizer in self.update.optimizers.items():
+            optimizer.load_state_dict(state["optimizers"][name])
+        self.counters.update(state["counters"])
+        self.random_metrics = dict(state["random_metrics"])
         self.replay.load_state_dict(state["replay"])
         load_env_state(self.env, state["envs"]["train"])
         set_rng_state(state["rng"], **self._named_generators())
+        self._interval = self._new_interval()
+        self._carry = self.env.reset()
+        self.episode_return.zero_()
 
-    def checkpoint(self) -> Path:
-        """Save the program's state and each seed's skills, then restart the episodes (what a resumed run does)."""
+    def _save(self) -> Path:
+        """The program's state and each seed's skills, then the episodes restart (what a resumed run does)."""
         frames = self.counters["frames"]
         path = DIAYN_SEEDS_FORMAT.save(self.checkpointer, frames, self.meta, self.cfg, **self.state_dict())
         for i, seed in enumerate(self.seeds):
@@ -290,9 +310,11 @@ class DIAYNTrainer:
         self.episode_return.zero_()
         return path
 
-    def evaluate(self, name: str) -> dict[str, float]:
+    def _evaluate(self, final: bool) -> dict[str, float]:
         """Fresh rollouts of every seed's skills (:func:`evaluate`), figures at
-        ``<output_dir>/seed<s>/figures/<name>``."""
+        ``<output_dir>/seed<s>/figures/skill_coverage_<frames>.png`` (``skill_coverage.png`` for the final
+        one)."""
+        name = "skill_coverage.png" if final else f"skill_coverage_{self.counters['frames']}.png"
         metrics = {}
         for i, seed in enumerate(self.seeds):
             self.loss.copy_to(i, self.seed_losses[i])
@@ -359,10 +381,10 @@ class DIAYNTrainer:
         self.episode_return = total[-1] - total.gather(0, last_end[-1:]).squeeze(0)
         self._interval["returns"].append(returns.view(T, S, n).transpose(0, 1).reshape(S, T * n))
 
-    def step(self) -> dict[str, float]:
-        """One batch: ``collector.frames_per_batch`` env steps per seed into the replay, the updates they earn, an
-        evaluation when due. Returns the metrics due at this frame count: the training metrics averaged since the
-        last ones (every ``log_every`` frames), an evaluation's; an empty dict between them."""
+    def _step(self) -> dict[str, float]:
+        """One batch: ``collector.frames_per_batch`` env steps per seed into the replay, the updates they
+        earn. Returns the metrics due at this frame count: the training metrics averaged since the last ones
+        (every ``log_every`` frames); an empty dict between them."""
         counters, settings = self.counters, self.settings
         collect_start = time.perf_counter()
         data = self._collect(settings["steps"])
@@ -385,9 +407,6 @@ class DIAYNTrainer:
         if counters["frames"] >= counters["next_log"] or self.done:
             metrics = self._interval_metrics()
             counters["next_log"] = (counters["frames"] // settings["log_every"] + 1) * settings["log_every"]
-        if counters["frames"] >= counters["next_eval"]:
-            metrics.update(self.evaluate(f"skill_coverage_{counters['frames']}.png"))
-            counters["next_eval"] += settings["eval_every"]
         return metrics
 
     def _new_interval(self) -> dict:
@@ -406,8 +425,8 @@ class DIAYNTrainer:
         if interval["updates"]:
             mean = interval["sums"] / interval["updates"]  # [S]
             first = counters["updates"] - interval["updates"]
-            check_finite({k: v for k, v in mean.items() if k.startswith("loss_")},
-                         f"DIAYN updates {first}..{counters['updates'] - 1}")
+            check_not_diverged({k: v for k, v in mean.items() if k.startswith("loss_")},
+                               f"DIAYN updates {first}..{counters['updates'] - 1}")
             metrics["time/seed_updates_per_s"] = interval["updates"] * len(seeds) / max(interval["update_s"], 1e-9)
             for i in range(len(seeds)):
                 metrics.update({f"{self.prefix(i)}train/{k}": float(v[i]) for k, v in mean.items()})
@@ -419,49 +438,17 @@ class DIAYNTrainer:
                     metrics[f"{self.prefix(i)}train/episode_return"] = float(ended.mean())
         return metrics
 
-    def log(self, metrics: dict[str, float]) -> None:
-        """Send ``metrics`` to the configured logger at the current frame count."""
-        log_metrics(self.logger, metrics, self.counters["frames"])
+    def _result(self) -> dict:
+        """The random policy's metrics and each seed's run folder (``runs``). A stop by a signal saves where
+        the episodes restart, as every checkpoint does: the resumed run matches an uninterrupted one exactly
+        when the stop falls on a ``checkpoint.every`` boundary."""
+        return {**self.random_metrics, "runs": [str(seed_run_dir(self.output_dir, s)) for s in self.seeds]}
 
-    def train(self) -> dict:
-        """Step to ``collector.total_frames`` (logging every ``log_every`` frames, checkpointing every
-        ``checkpoint.every`` frames and at the end), then evaluate the final skills; returns the last training
-        metrics, the final evaluation, the random policy's, the program ``checkpoint`` path and each seed's run
-        folder (``runs``). A SIGTERM or SIGINT finishes the env step batch in progress, checkpoints it and raises
-        :class:`~umrl.signals.TrainingStopped` (:mod:`umrl.signals`); the episodes restart there, as at every
-        checkpoint, so the resumed run matches an uninterrupted one exactly when the stop falls on a
-        ``checkpoint.every`` boundary."""
-        cfg, counters = self.cfg, self.counters
-        progress = tqdm.tqdm(total=cfg.collector.total_frames, initial=counters["frames"], disable=not cfg.progress,
-                             unit="frames", desc=f"DIAYN {cfg.env.name} seeds {list(self.seeds)}")
-        last, path, saved = {}, self.checkpointer.latest(), counters["frames"]
-        with stop_requests() as stop:
-            while not self.done and not stop:
-                before = counters["frames"]
-                metrics = self.step()
-                progress.update(counters["frames"] - before)
-                if metrics:
-                    self.log(metrics)
-                    last.update(metrics)
-                due = counters["frames"] >= counters["next_checkpoint"]
-                if due or self.done:  # every checkpoint.every frames, and the end
-                    counters["next_checkpoint"] += cfg.checkpoint.every * due
-                    path, saved = self.checkpoint(), counters["frames"]
-            progress.close()
-            if stop and not self.done:
-                path = path if path is not None and saved == counters["frames"] else self.checkpoint()
-                raise stop.stopped(f"at {counters['frames']} of {cfg.collector.total_frames} frames per seed", path)
-        final = self.evaluate("skill_coverage.png")
-        self.log(final)
-        return {**last, **final, **self.random_metrics, "checkpoint": str(path),
-                "runs": [str(seed_run_dir(self.output_dir, s)) for s in self.seeds]}
+    def _description(self) -> str:
+        return f"DIAYN {self.cfg.env.name} seeds {list(self.seeds)}"
 
-    def close(self) -> None:
-        """Close both envs and the logger, and release ``output_dir``."""
-        self.env.close()
-        self.eval_env.close()
-        close_logger(self.logger)
-        self.folder_lock.release()
+    def _envs(self) -> list:
+        return [self.env, self.eval_env]
 
 
 def train(cfg: DictConfig) -> dict:

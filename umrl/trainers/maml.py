@@ -3,13 +3,16 @@
 ``proposal=random_arena`` is an ablation, not the paper's method: UML-random meta-trained with point_nav's position
 clipped to [-a, a]² (``env.arena``, 1.0 when null); see :mod:`umrl.proposals`.
 
-One meta-iteration (:func:`meta_iteration`): ``proposal.resample`` picks T tasks -> collect each task's pre-update
-batch with θ (``sample_by=env_steps``: its first episodes up to N × H env steps,
-:func:`umrl.rollout.collect_env_steps`; ``trajectories``: N trajectories, :func:`umrl.rollout.collect`) -> the loss's
-value estimator (linear baseline + GAE) -> ``MAMLLoss.adapt`` (one PG step per task) -> collect the post-update batches the same way with every task's adapted parameters (one
+One meta-iteration (:meth:`MAMLTrainer.step`): ``proposal.resample`` picks T tasks -> collect each task's
+pre-update batch with θ (``sample_by=env_steps``: its first episodes up to N × H env steps,
+:func:`umrl.rollout.collect_env_steps`; ``trajectories``: N trajectories, :func:`umrl.rollout.collect`) -> the
+loss's value estimator (linear baseline + GAE) -> ``MAMLLoss.adapt`` (one PG step per task) -> collect the
+post-update batches the same way with every task's adapted parameters (one
 batched policy call per env step) -> :class:`~umrl.optim.trpo.TRPOStep` on ``MAMLLoss``'s forward (the query
 surrogate through the inner step), with the KL Hessian-vector product strategy ``trpo.hvp`` names
-(:mod:`umrl.optim.meta_hvp`) on ``trpo.hvp_fraction`` of the trajectories.
+(:mod:`umrl.optim.meta_hvp`) on ``trpo.hvp_fraction`` of the trajectories. The step's parts run the
+``pre_phase`` / ``post_phase`` hooks (:mod:`umrl.trainers.base`) as ``collect`` (twice: pre- and post-update),
+``inner_step`` and ``meta_step``.
 
 Metrics of :meth:`MAMLTrainer.step`: ``train/`` return_pre, return_post (mean undiscounted return of the pre/post-update
 trajectories), reward_mean/std/min/max (task rewards of the pre-update batch), kl, surrogate_before,
@@ -20,7 +23,7 @@ step_norm, log_std (θ's action log-std after the meta-step, mean over action di
 adaptation alone, built with the graph the meta-step differentiates through), the meta-step's parts objective_s
 (surrogate and KL through the inner step), direction_s (gradient, HVP set-up, ``trpo.cg_iters`` products), cg_s
 (those products alone) and line_search_s, env_steps_per_s (pre + post env steps per second of collect_s),
-env_steps. Checkpoints: ``<output_dir>/checkpoints/step_<iteration>.pt`` (format in :mod:`umrl.checkpoints.maml`).
+env_steps. Checkpoints: ``<output_dir>/checkpoints/step_<iteration>.safetensors`` (format in :mod:`umrl.checkpoints.maml`).
 
 Example (tiny sizes; ``umrl.trainers.compose`` reads the defaults in ``umrl/configs/maml.yaml``):
     >>> from umrl.trainers import MAMLTrainer, compose
@@ -31,15 +34,14 @@ Example (tiny sizes; ``umrl.trainers.compose`` reads the defaults in ``umrl/conf
 """
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Callable
 from pathlib import Path
 
 import torch
-import tqdm
 from omegaconf import DictConfig
+from tensordict import TensorDict, TensorDictBase
 
 from umrl.checkpoints import MAML_FORMAT, save_maml_checkpoint
+from umrl.checkpoints.folder import Checkpointer
 from umrl.checkpoints.format import check_budget_left
 from umrl.configs import check_resume, validate
 from umrl.configs.maml import MAMLConfig
@@ -51,78 +53,70 @@ from umrl.optim.meta_hvp import make_meta_hvp
 from umrl.optim.trpo import TRPOStep
 from umrl.profiling import device_clock
 from umrl.proposals import make_proposal
+from umrl.resume_state import env_state, load_env_state
+from umrl.rng import rng_state, seed_everything, set_rng_state
 from umrl.rollout import NonFiniteActions, check_cudagraphs, collect, collect_env_steps
-from umrl.runtime import (
-    Checkpointer,
-    check_finite,
-    close_logger,
-    env_state,
-    load_env_state,
-    log_metrics,
-    make_logger,
-    rng_state,
-    seed_everything,
-    set_rng_state,
-)
-from umrl.signals import stop_requests
-from umrl.validation import InvalidValue, resolve_device
+from umrl.trainers.base import Trainer
+from umrl.validation import InvalidValue, check_not_diverged, resolve_device
 
-__all__ = ["MAMLTrainer", "build", "meta_batch", "meta_iteration", "meta_step", "train"]
+__all__ = ["MAMLTrainer", "build", "collect_batch", "inner_step", "meta_batch", "meta_step", "train"]
 
 
-def meta_batch(cfg: DictConfig, proposal, policy, loss: MAMLLoss, generator: torch.Generator,
-               *, learn_context: Callable[[], contextlib.AbstractContextManager] = contextlib.nullcontext):
-    """A fresh meta-batch: ``(support, adapted, query, inner_s)``.
-
-    ``proposal.resample`` draws the tasks, ``support`` holds the pre-update trajectories with θ and their advantages,
-    ``adapted`` every task's parameters after the inner step (built with the graph the meta-step differentiates
-    through, under ``learn_context()``), ``query`` the post-update trajectories with them and their advantages;
-    ``inner_s`` is the inner step's time."""
-    num_tasks, horizon = proposal.num_tasks, cfg.env.horizon
-    advantages = loss.value_estimator
-    device = next(policy.parameters()).device
-    proposal.resample(generator)
-    sampling = {"num_tasks": num_tasks, "horizon": horizon, "cudagraphs": cfg.cudagraphs}
+def collect_batch(cfg: DictConfig, proposal, policy, loss: MAMLLoss, adapted: TensorDict | None = None
+                  ) -> TensorDictBase:
+    """Trajectories of every task ``proposal`` drew (``[T, N, H]``) with their advantages (``loss``'s value
+    estimator): with θ (the support), or with every task's ``adapted`` parameters (the query; an inner step
+    whose policy acts non-finite is refused, naming ``maml.inner_lr``). ``cfg.sample_by=env_steps`` samples
+    each task's first episodes up to N × H env steps (:func:`umrl.rollout.collect_env_steps`),
+    ``trajectories`` N trajectories (:func:`umrl.rollout.collect`)."""
+    horizon = cfg.env.horizon
+    sampling = {"num_tasks": proposal.num_tasks, "horizon": horizon, "cudagraphs": cfg.cudagraphs}
     if cfg.sample_by == "env_steps":
         sampler, sampling["env_steps"] = collect_env_steps, proposal.trajectories_per_task * horizon
     else:
         sampler = collect
-    support = advantages(sampler(proposal.env, policy, **sampling))
-    check_finite({"reward": support["next", "reward"]}, "the pre-update rollouts")
-    inner_start = device_clock(device)
-    with torch.enable_grad(), learn_context():  # the graph (second order unless first_order) is reused below
-        adapted = loss.adapt(support)
-    check_finite(dict(adapted.items(True, True)), "the adapted parameters (inner step)")
-    inner_s = device_clock(device) - inner_start
+    if adapted is None:
+        support = loss.value_estimator(sampler(proposal.env, policy, **sampling))
+        check_not_diverged({"reward": support["next", "reward"]}, "the pre-update rollouts")
+        return support
     try:
         query = sampler(proposal.env, policy, params=adapted.detach(), **sampling)
     except NonFiniteActions as err:  # the inner step diverged
         raise InvalidValue("maml.inner_lr", cfg.maml.inner_lr, "a smaller finite number > 0",
                            note=f"the adapted policy's actions after the inner step: {err.note}") from err
-    return support, adapted, advantages(query), inner_s
+    return loss.value_estimator(query)
 
 
-def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPOStep, generator: torch.Generator, *,
-                   learn_context: Callable[[], contextlib.AbstractContextManager] = contextlib.nullcontext
-                   ) -> dict[str, float]:
-    """Collect support and query batches for a fresh meta-batch (:func:`meta_batch`) and take one TRPO meta-step
-    (:func:`meta_step`); return metrics.
-
-    ``learn_context`` makes the context manager that wraps each part of the learning step alone: it is called twice
-    per iteration, for the inner adaptation and for the TRPO step (the query collection runs between them), e.g.
-    fresh FLOP counters (``benchmarks/meta_iteration.py``; one ``FlopCounterMode`` entered twice would forget the
-    first part). Times are taken after the device's queued work (CUDA) has finished."""
-    device = next(policy.parameters()).device
+def inner_step(loss: MAMLLoss, support: TensorDictBase) -> tuple[TensorDict, float]:
+    """Every task's parameters after ``loss.adapt(support)``, built with the graph the meta-step
+    differentiates through (second order unless ``maml.first_order``; refused if not finite), and the seconds
+    it took (after the device's queued work has finished)."""
+    device = next(loss.policy.parameters()).device
     start = device_clock(device)
-    support, adapted, query, inner_s = meta_batch(cfg, proposal, policy, loss, generator, learn_context=learn_context)
-    collected = device_clock(device)
-    with learn_context():
-        info = meta_step(cfg, loss, trpo, support, query, adapted)
-    learned = device_clock(device)
+    with torch.enable_grad():
+        adapted = loss.adapt(support)
+    check_not_diverged(dict(adapted.items(True, True)), "the adapted parameters (inner step)")
+    return adapted, device_clock(device) - start
 
+
+def meta_batch(cfg: DictConfig, proposal, policy, loss: MAMLLoss, generator: torch.Generator):
+    """A fresh meta-batch ``(support, adapted, query, inner_s)``: ``proposal.resample`` draws the tasks, then
+    :func:`collect_batch` with θ, :func:`inner_step` and :func:`collect_batch` with the adapted parameters
+    (what :meth:`MAMLTrainer.step` does before its meta-step, without its hooks)."""
+    proposal.resample(generator)
+    support = collect_batch(cfg, proposal, policy, loss)
+    adapted, inner_s = inner_step(loss, support)
+    return support, adapted, collect_batch(cfg, proposal, policy, loss, adapted), inner_s
+
+
+def _iteration_metrics(support: TensorDictBase, query: TensorDictBase, policy, info: dict[str, float], *,
+                       batch_s: float, inner_s: float, meta_step_s: float) -> dict[str, float]:
+    """A meta-iteration's metrics (module docstring) from its batches, :func:`meta_step`'s ``info`` and its
+    times: ``batch_s`` from the iteration's start to the end of the query batch (the inner step included),
+    ``inner_s`` the inner step's, ``meta_step_s`` the meta-step's."""
     reward = support["next", "reward"][support["mask"]]
     steps = support["mask"].numel() + query["mask"].numel()  # simulated, episodes past a budget's last one included
-    collect_s, learn_s = collected - start - inner_s, learned - collected + inner_s
+    collect_s, learn_s = batch_s - inner_s, meta_step_s + inner_s
     phases = {k: info.pop(k) for k in ("direction_s", "cg_s", "line_search_s")}
     metrics = {f"train/{k}": v for k, v in info.items()}
     metrics.update({
@@ -138,7 +132,7 @@ def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPO
         "time/inner_s": inner_s,
         # the meta-step's parts: the surrogate and KL through the inner step (what TRPO's two phases leave), the
         # search direction (gradient, HVP set-up, conjugate gradient), the line search
-        "time/objective_s": learned - collected - phases["direction_s"] - phases["line_search_s"],
+        "time/objective_s": meta_step_s - phases["direction_s"] - phases["line_search_s"],
         **{f"time/{k}": v for k, v in phases.items()},
         "time/env_steps_per_s": steps / collect_s,
         "time/env_steps": float(steps),
@@ -147,9 +141,10 @@ def meta_iteration(cfg: DictConfig, proposal, policy, loss: MAMLLoss, trpo: TRPO
 
 
 def meta_step(cfg: DictConfig, loss: MAMLLoss, trpo: TRPOStep, support, query, adapted) -> dict[str, float]:
-    """TRPO's meta-step through the inner step (``adapted``: :func:`meta_batch`'s, with its graph), with the KL
-    Hessian-vector product strategy ``trpo`` was built with (``cfg.trpo.hvp`` on ``cfg.trpo.hvp_fraction`` of the
-    trajectories); updates the policy in place and returns :class:`~umrl.optim.trpo.TRPOStep`'s numbers."""
+    """TRPO's meta-step through the inner step (``adapted``: :func:`inner_step`'s, with its graph), with the
+    KL Hessian-vector product strategy ``trpo`` was built with (``cfg.trpo.hvp`` on ``cfg.trpo.hvp_fraction``
+    of the trajectories); updates the policy in place and returns :class:`~umrl.optim.trpo.TRPOStep`'s
+    numbers."""
     with torch.enable_grad():  # the meta-step's first evaluation, through the inner step's graph
         first = loss(loss.pack(support, query, adapted))
     batch = loss.pack(support, query)
@@ -166,9 +161,12 @@ def build(cfg: DictConfig, generator: torch.Generator | None = None):
     policy, the loss, TRPO's state and the proposal's env and discriminator live on ``cfg.device``. ``generator``
     draws the Hessian-vector products' trajectory share (``cfg.trpo.hvp_fraction``)."""
     device = torch.device(resolve_device("device", cfg.device))
+    skills = cfg.num_skills or cfg.default_num_skills  # the nulls' meaning: umrl/configs/maml.yaml
     proposal = make_proposal(
-        cfg.proposal, cfg.env.name, num_tasks=cfg.meta_batch_size, trajectories_per_task=cfg.trajectories_per_task,
-        seed=cfg.seed, horizon=cfg.env.horizon, num_skills=cfg.num_skills,
+        cfg.proposal, cfg.env.name, num_tasks=cfg.meta_batch_size or (skills if cfg.proposal == "oracle" else None),
+        trajectories_per_task=cfg.trajectories_per_task, seed=cfg.seed, horizon=cfg.env.horizon,
+        num_skills=None if cfg.proposal in ("diayn", "oracle") else skills,
+        discriminator_hidden=list(cfg.discriminator_hidden),
         diayn_checkpoint=cfg.diayn_checkpoint if cfg.proposal == "diayn" else None, device=device,
         arena=cfg.env.arena,
     )
@@ -189,21 +187,25 @@ def build(cfg: DictConfig, generator: torch.Generator | None = None):
     return proposal, policy, loss, trpo
 
 
-class MAMLTrainer:
+class MAMLTrainer(Trainer):
     """MAML meta-training built from a config (checked against :class:`~umrl.configs.maml.MAMLConfig` first).
 
-    Construction seeds every RNG (``cfg.seed``), builds the proposal, policy, loss and TRPO step (:func:`build`) and
-    the checkpointer (``<output_dir>/checkpoints``); with ``cfg.resume`` it restores the latest checkpoint
-    (:meth:`load_state_dict`), else it writes iteration 0 (the initialisation, the meta-training ablation's first
-    point). A config that differs from the checkpoint's beyond ``umrl.configs.RESUME_ALLOW`` is refused.
+    Construction seeds every RNG (``cfg.seed``), builds the proposal, policy, loss and TRPO step
+    (:func:`build`) and the checkpointer (``<output_dir>/checkpoints``); with ``cfg.resume`` it restores the
+    latest checkpoint (:meth:`load_state_dict`). A config that differs from the checkpoint's beyond
+    ``umrl.configs.RESUME_ALLOW`` is refused. :meth:`setup` (run by the first :meth:`step` or :meth:`train`)
+    writes the checkpoint of the start (of a fresh run: iteration 0, the initialisation, the meta-training
+    ablation's first point) and opens the logger.
 
     :meth:`step` runs one meta-iteration and returns its metrics; :meth:`train` steps to ``cfg.iterations``,
-    logging (``cfg.logger``) and checkpointing (``cfg.checkpoint.every`` and the last); :meth:`state_dict` holds
-    everything a resumed run needs to finish bit-identical to an uninterrupted one: the policy, the counters, every
-    RNG (torch, numpy, python, the task generator) and the env's reset noise.
+    logging (``cfg.logger``) and checkpointing (``cfg.checkpoint.every`` and the last; the loop and its hook
+    points are :class:`~umrl.trainers.base.Trainer`'s); :meth:`state_dict` holds everything a resumed run
+    needs to finish bit-identical to an uninterrupted one: the policy, the counters, every RNG (torch, numpy,
+    python, the task generator) and the env's reset noise.
 
-    Attributes: ``cfg`` (validated), ``proposal``, ``policy``, ``loss``, ``trpo``, ``generator`` (task draws and the
-    HVP subsample), ``iteration``, ``env_steps``, ``checkpointer``.
+    Attributes: ``cfg`` (validated), ``proposal``, ``policy``, ``loss``, ``trpo``, ``generator`` (task draws
+    and the HVP subsample), ``iteration``, ``env_steps``, ``checkpointer``, ``resumed`` (whether construction
+    restored a checkpoint: then :meth:`setup` writes none).
 
     Construction first locks ``output_dir`` until :meth:`close` (:func:`umrl.folder_lock.claim_run_folder`: a folder
     another run uses, or one holding checkpoints while ``cfg.resume`` is false, is refused before any work).
@@ -212,8 +214,13 @@ class MAMLTrainer:
     command line, ``recipes/maml.py``, and by the suite's workers; :mod:`umrl.process`).
     """
 
+    name = "maml"
+    PHASES = ("collect", "inner_step", "meta_step")
+    stop_message = "after meta-iteration {progress} of {budget}"
+
     @releases_folder_on_error
     def __init__(self, cfg: DictConfig):
+        super().__init__()
         self.cfg = cfg = validate(cfg, MAMLConfig)
         self.generator = seed_everything(cfg.seed)
         self.output_dir = Path(cfg.output_dir)
@@ -233,22 +240,43 @@ class MAMLTrainer:
         # FileNotFoundError says what is missing; ConfigError lists changed keys; ValueError if format or meta differ
         state = (MAML_FORMAT.load_for_resume(self.checkpointer, self.meta, lambda saved: check_resume(saved, cfg))
                  if cfg.resume else None)
+        self.resumed = state is not None
         if state is not None:
             self.load_state_dict(state)
             check_budget_left("iterations", cfg.iterations, self.iteration, "iterations", self.output_dir)
-        else:
-            self.save()
-        self.logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, job_type="maml", config=cfg,
-                                  log_dir=self.output_dir)
 
     @property
-    def done(self) -> bool:
-        """Whether the budget (``cfg.iterations``) is reached."""
-        return self.iteration >= self.cfg.iterations
+    def progress(self) -> int:
+        """Meta-iterations done."""
+        return self.iteration
 
-    def step(self) -> dict[str, float]:
-        """One meta-iteration (:func:`meta_iteration`): the policy is updated in place; returns its metrics."""
-        metrics = meta_iteration(self.cfg, self.proposal, self.policy, self.loss, self.trpo, self.generator)
+    @property
+    def budget(self) -> int:
+        return self.cfg.iterations
+
+    def _setup(self) -> dict[str, float]:
+        if not self.resumed:
+            self.save()
+        return {}
+
+    def _step(self) -> dict[str, float]:
+        """One meta-iteration (module docstring): the policy is updated in place; returns its metrics. Times
+        are taken after the device's queued work (CUDA) has finished."""
+        cfg, proposal, policy, loss = self.cfg, self.proposal, self.policy, self.loss
+        device = next(policy.parameters()).device
+        start = device_clock(device)
+        proposal.resample(self.generator)
+        with self.phase("collect"):
+            support = collect_batch(cfg, proposal, policy, loss)
+        with self.phase("inner_step"):
+            adapted, inner_s = inner_step(loss, support)
+        with self.phase("collect"):
+            query = collect_batch(cfg, proposal, policy, loss, adapted)
+        collected = device_clock(device)
+        with self.phase("meta_step"):
+            info = meta_step(cfg, loss, self.trpo, support, query, adapted)
+        metrics = _iteration_metrics(support, query, policy, info, batch_s=collected - start, inner_s=inner_s,
+                                     meta_step_s=device_clock(device) - collected)
         self.iteration += 1
         self.env_steps += int(metrics["time/env_steps"])
         return metrics
@@ -265,51 +293,26 @@ class MAMLTrainer:
         set_rng_state(state["rng"], task=self.generator)
         load_env_state(self.proposal.env, state["env"])
 
-    def save(self) -> Path:
-        """Write the checkpoint of the current iteration; returns its path."""
+    def _save(self) -> Path:
         state = self.state_dict()
         return save_maml_checkpoint(self.checkpointer, meta=self.meta, policy=self.policy, iteration=self.iteration,
                                     env_steps=self.env_steps, rng=state["rng"], env=state["env"], config=self.cfg)
 
-    def log(self, metrics: dict[str, float]) -> None:
-        """Send ``metrics`` to the configured logger at the current iteration."""
-        log_metrics(self.logger, metrics, self.iteration)
+    def _result(self) -> dict:
+        return {"iteration": self.iteration}
 
-    def train(self) -> dict:
-        """Step to ``cfg.iterations``, logging every iteration and checkpointing every ``cfg.checkpoint.every`` and
-        at the last; returns the last iteration's metrics, ``iteration`` and the last ``checkpoint`` path (a run
-        resumed at its budget is refused at construction). A SIGTERM or SIGINT finishes the meta-iteration in
-        progress, saves it and raises :class:`~umrl.signals.TrainingStopped` (:mod:`umrl.signals`)."""
-        cfg, metrics = self.cfg, {}
-        path, saved = self.checkpointer.latest(), self.iteration
-        progress = tqdm.tqdm(total=cfg.iterations, initial=self.iteration, disable=not cfg.progress,
-                             desc="meta-iterations")
-        with stop_requests() as stop:
-            while not self.done and not stop:
-                metrics = self.step()
-                self.log(metrics)
-                progress.update(1)
-                progress.set_postfix(pre=f"{metrics['train/return_pre']:.1f}",
-                                     post=f"{metrics['train/return_post']:.1f}", kl=f"{metrics['train/kl']:.4f}",
-                                     learn=f"{metrics['time/learn_s']:.1f}s")
-                if self.iteration % cfg.checkpoint.every == 0 or self.done:  # and always the last one
-                    path, saved = self.save(), self.iteration
-            progress.close()
-            if stop and not self.done:
-                path = path if path is not None and saved == self.iteration else self.save()
-                raise stop.stopped(f"after meta-iteration {self.iteration} of {cfg.iterations}", path)
-        return {**metrics, "iteration": self.iteration, "checkpoint": str(path)}
+    def _postfix(self, metrics: dict[str, float]) -> dict[str, str]:
+        return {"pre": f"{metrics['train/return_pre']:.1f}", "post": f"{metrics['train/return_post']:.1f}",
+                "kl": f"{metrics['train/kl']:.4f}", "learn": f"{metrics['time/learn_s']:.1f}s"}
 
-    def close(self) -> None:
-        """Close the env (and its worker threads), finish the logger's run and release ``output_dir``."""
-        self.proposal.env.close()
-        close_logger(self.logger)
-        self.folder_lock.release()
+    def _envs(self) -> list:
+        return [self.proposal.env]  # closing it ends its worker threads
 
 
 def train(cfg: DictConfig) -> dict:
-    """Meta-train as configured in this process (:class:`MAMLTrainer`, then closed): the last iteration's metrics,
-    ``iteration`` and the final ``checkpoint`` path."""
+    """Meta-train as configured in this process (:class:`MAMLTrainer`, then closed): the last iteration's
+    metrics, ``iteration`` and the final ``checkpoint`` path (a run resumed at its budget is refused at
+    construction)."""
     trainer = MAMLTrainer(cfg)
     try:
         return trainer.train()

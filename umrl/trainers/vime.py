@@ -20,7 +20,7 @@ half_cheetah), the untrained policy's under ``coverage/initial_*`` and everythin
 ``coverage/cumulative_*`` (all from :mod:`umrl.skill_coverage`); ``time/`` env steps/s and seconds per phase (the
 TRPO step's direction_s, cg_s and line_search_s too, as in MAML's). The figure ``<output_dir>/figures/coverage.png`` shows the last batch's visited states against the untrained policy's.
 
-Checkpoints: ``<output_dir>/checkpoints/step_<iteration>.pt``, format ``umrl.vime.v1`` (documented in
+Checkpoints: ``<output_dir>/checkpoints/step_<iteration>.safetensors``, format ``umrl.vime.v1`` (documented in
 :mod:`umrl.checkpoints.vime`); ``umrl.checkpoints.load_vime_policy(path)`` returns the policy to fine-tune.
 ``resume=true`` restores the policy, the dynamics model and its optimiser, the bonus normaliser, the transitions,
 the counters, every RNG and the env's reset noise (bit-identical to an uninterrupted run).
@@ -32,12 +32,12 @@ import time
 from pathlib import Path
 
 import torch
-import tqdm
 from omegaconf import DictConfig
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyTensorStorage, ReplayBuffer, TensorDictReplayBuffer
 
 from umrl.checkpoints import VIME_FORMAT, save_vime_checkpoint
+from umrl.checkpoints.folder import Checkpointer
 from umrl.checkpoints.format import check_budget_left
 from umrl.configs import check_resume, validate
 from umrl.configs.vime import VIMEConfig
@@ -48,25 +48,13 @@ from umrl.modules.policy import make_gaussian_policy
 from umrl.objectives.trpo_surrogate import ImportanceSamplingLoss
 from umrl.objectives.vime import VIMELoss
 from umrl.optim.trpo import TRPOStep
+from umrl.resume_state import env_state, load_env_state, load_replay_buffer_state, replay_buffer_state
+from umrl.rng import rng_state, seed_everything, set_rng_state
 from umrl.rollout import collect
-from umrl.runtime import (
-    Checkpointer,
-    check_finite,
-    close_logger,
-    env_state,
-    load_env_state,
-    load_replay_buffer_state,
-    log_metrics,
-    make_logger,
-    replay_buffer_state,
-    rng_state,
-    seed_everything,
-    set_rng_state,
-)
-from umrl.signals import stop_requests
 from umrl.skill_coverage import cumulative_coverage, plot_coverage, state_coverage, visited_states
+from umrl.trainers.base import Trainer
 from umrl.transforms.vime_bonus import VIMEBonus
-from umrl.validation import resolve_device
+from umrl.validation import check_not_diverged, resolve_device
 
 __all__ = ["TRANSITION_KEYS", "VIMETrainer", "heldout_metrics", "train", "train_dynamics", "trpo_update"]
 
@@ -91,7 +79,7 @@ def train_dynamics(loss_fn: VIMELoss, optimizer, replay: ReplayBuffer, cfg: Dict
     logs = []
     for _ in range(cfg.dynamics.updates_per_iteration):
         out = loss_fn(replay.sample(cfg.dynamics.batch_size))
-        check_finite({"loss_dynamics": out["loss_dynamics"]}, "dynamics update")
+        check_not_diverged({"loss_dynamics": out["loss_dynamics"]}, "dynamics update")
         optimizer.zero_grad(set_to_none=True)
         out["loss_dynamics"].backward()
         optimizer.step()
@@ -111,7 +99,7 @@ def heldout_metrics(loss_fn: VIMELoss, holdout: TensorDictBase) -> dict[str, flo
     return {"heldout_log_likelihood": log_lik, "heldout_elbo": elbo}
 
 
-class VIMETrainer:
+class VIMETrainer(Trainer):
     """VIME pre-training built from a config (checked against :class:`~umrl.configs.vime.VIMEConfig` first).
 
     Construction seeds every RNG (``cfg.seed``), builds the env, the policy, the Bayesian dynamics model with its
@@ -123,13 +111,20 @@ class VIMETrainer:
     Construction first locks ``output_dir`` until :meth:`close` (:func:`umrl.folder_lock.claim_run_folder`: a folder
     another run uses, or one holding checkpoints while ``cfg.resume`` is false, is refused before any work).
 
-    :meth:`step` runs one iteration (module docstring) and returns its metrics; :meth:`train` steps to
-    ``cfg.iterations``, logging, checkpointing (``cfg.checkpoint.every`` and the last) and drawing the coverage
-    figure. Nothing process-wide is set (:mod:`umrl.process`).
+    :meth:`step` runs one iteration (module docstring) and returns its metrics; its parts run the
+    ``pre_phase`` / ``post_phase`` hooks as ``collect``, ``bonus``, ``dynamics`` and ``policy``. :meth:`train`
+    steps to ``cfg.iterations``, logging, checkpointing (``cfg.checkpoint.every`` and the last) and drawing
+    the coverage figure (its final :meth:`evaluate`; the loop and its hook points are
+    :class:`~umrl.trainers.base.Trainer`'s). Nothing process-wide is set (:mod:`umrl.process`).
     """
+
+    name = "vime"
+    PHASES = ("collect", "bonus", "dynamics", "policy")
+    stop_message = "after iteration {progress} of {budget}"
 
     @releases_folder_on_error
     def __init__(self, cfg: DictConfig):
+        super().__init__()
         self.cfg = cfg = validate(cfg, VIMEConfig)
         seed_everything(cfg.seed)
         self.device = device = torch.device(resolve_device("device", cfg.device))  # networks, replay, env outputs
@@ -171,14 +166,15 @@ class VIMETrainer:
         if state is not None:
             self.load_state_dict(state)
             check_budget_left("iterations", cfg.iterations, self.counters["iteration"], "iterations", self.output_dir)
-        self.logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, job_type="vime", config=cfg,
-                                  log_dir=self.output_dir)
-        self.start_time = time.perf_counter()
 
     @property
-    def done(self) -> bool:
-        """Whether the budget (``cfg.iterations``) is reached."""
-        return self.counters["iteration"] >= self.cfg.iterations
+    def progress(self) -> int:
+        """Iterations done."""
+        return self.counters["iteration"]
+
+    @property
+    def budget(self) -> int:
+        return self.cfg.iterations
 
     def state_dict(self) -> dict:
         """Everything a resumed run needs: networks, optimiser, bonus normaliser, transitions (with
@@ -208,8 +204,7 @@ class VIMETrainer:
         set_rng_state(state["rng"])
         load_env_state(self.env, state["env"])
 
-    def save(self) -> Path:
-        """Write the checkpoint of the current iteration; returns its path."""
+    def _save(self) -> Path:
         state = self.state_dict()
         return save_vime_checkpoint(
             self.checkpointer, meta=self.meta, policy=self.policy, dynamics=self.dynamics,
@@ -218,11 +213,12 @@ class VIMETrainer:
             initial_states=self.initial_states, visited=self.seen, rng=state["rng"], env=state["env"],
             config=self.cfg)
 
-    def step(self) -> dict[str, float]:
+    def _step(self) -> dict[str, float]:
         """One iteration: collect, score with the bonus, train the dynamics model, one TRPO step; its metrics."""
         cfg, dyn = self.cfg, self.cfg.dynamics
         tic = time.perf_counter()
-        batch = collect(self.env, self.policy, num_tasks=1, horizon=cfg.env.horizon)[0]  # [N, H]
+        with self.phase("collect"):
+            batch = collect(self.env, self.policy, num_tasks=1, horizon=cfg.env.horizon)[0]  # [N, H]
         collect_s = time.perf_counter() - tic
         coverage = state_coverage(batch, cfg.env.name, cfg.coverage.cell_size)
         self.seen, cumulative = cumulative_coverage(self.seen, batch, cfg.env.name, cfg.coverage.cell_size)
@@ -230,7 +226,9 @@ class VIMETrainer:
             self.initial_coverage, self.initial_states = coverage, visited_states(batch, cfg.env.name).cpu()
 
         tic = time.perf_counter()
-        self.bonus(batch)  # ("next", "reward") <- 0 + eta * info gain / median, from the model before it sees them
+        with self.phase("bonus"):
+            # ("next", "reward") <- 0 + eta * info gain / median, from the model before it sees them
+            self.bonus(batch)
         bonus_s = time.perf_counter() - tic
         if cfg.bonus.shuffle:  # control run: same bonus values, no link to the transitions that earned them
             reward = batch["next", "reward"]
@@ -242,15 +240,17 @@ class VIMETrainer:
                 buffer.extend(part)
 
         tic = time.perf_counter()
-        self.dynamics.update_normalizer(*(valid[k] for k in TRANSITION_KEYS))
-        dyn_metrics = train_dynamics(self.dynamics_loss, self.optimizer, self.replay, cfg)
-        if len(self.holdout):
-            dyn_metrics.update(heldout_metrics(self.dynamics_loss, self.holdout[:]))
+        with self.phase("dynamics"):
+            self.dynamics.update_normalizer(*(valid[k] for k in TRANSITION_KEYS))
+            dyn_metrics = train_dynamics(self.dynamics_loss, self.optimizer, self.replay, cfg)
+            if len(self.holdout):
+                dyn_metrics.update(heldout_metrics(self.dynamics_loss, self.holdout[:]))
         dynamics_s = time.perf_counter() - tic
 
         tic = time.perf_counter()
-        self.surrogate.value_estimator(batch)
-        trpo_info = trpo_update(self.trpo, self.surrogate, batch)
+        with self.phase("policy"):
+            self.surrogate.value_estimator(batch)
+            trpo_info = trpo_update(self.trpo, self.surrogate, batch)
         policy_s = time.perf_counter() - tic
 
         self.counters["iteration"] += 1
@@ -277,10 +277,6 @@ class VIMETrainer:
                                      f"{ {k: v for k, v in metrics.items() if not math.isfinite(v)} }")
         return metrics
 
-    def log(self, metrics: dict[str, float]) -> None:
-        """Send ``metrics`` to the configured logger at the current iteration."""
-        log_metrics(self.logger, metrics, self.counters["iteration"])
-
     def plot_coverage(self) -> Path:
         """``<output_dir>/figures/coverage.png``: the last batch's visited states against the untrained policy's."""
         path = self.output_dir / "figures" / "coverage.png"
@@ -290,39 +286,19 @@ class VIMETrainer:
                       title=f"VIME {self.cfg.env.name}: visited states")
         return path
 
-    def train(self) -> dict:
-        """Step to ``cfg.iterations`` (logging, checkpointing every ``cfg.checkpoint.every`` and at the last), then
-        draw the coverage figure; returns the last metrics and the ``checkpoint`` path. A SIGTERM or SIGINT
-        finishes the iteration in progress, saves it and raises :class:`~umrl.signals.TrainingStopped`
-        (:mod:`umrl.signals`)."""
-        cfg, metrics = self.cfg, {}
-        path, saved = self.checkpointer.latest(), self.counters["iteration"]
-        progress = tqdm.tqdm(total=cfg.iterations, initial=self.counters["iteration"], disable=not cfg.progress,
-                             unit="it", desc=f"VIME {cfg.env.name}")
-        with stop_requests() as stop:
-            while not self.done and not stop:
-                metrics = self.step()
-                self.log(metrics)
-                progress.update(1)
-                progress.set_postfix({k.split("/")[-1]: f"{metrics[k]:.3g}" for k in
-                                      ("coverage/cells", "coverage/velocity_range", "dynamics/heldout_log_likelihood")
-                                      if k in metrics})
-                if self.counters["iteration"] % cfg.checkpoint.every == 0 or self.done:
-                    path, saved = self.save(), self.counters["iteration"]  # and always the last iteration (the
-                    # figure below draws no random numbers)
-            progress.close()
-            if stop and not self.done:
-                path = path if path is not None and saved == self.counters["iteration"] else self.save()
-                raise stop.stopped(f"after iteration {self.counters['iteration']} of {cfg.iterations}", path)
-        if self.initial_states is not None and self.last_batch is not None:  # also on a resumed run
+    def _evaluate(self, final: bool) -> dict[str, float]:
+        """The coverage figure (:meth:`plot_coverage`) once a batch was collected; no metrics (the coverage
+        ones come with every step). It draws no random numbers."""
+        if self.initial_states is not None and self.last_batch is not None:
             self.plot_coverage()
-        return {**metrics, "checkpoint": str(path)}
+        return {}
 
-    def close(self) -> None:
-        """Close the env, finish the logger's run and release ``output_dir``."""
-        self.env.close()
-        close_logger(self.logger)
-        self.folder_lock.release()
+    def _postfix(self, metrics: dict[str, float]) -> dict[str, str]:
+        shown = ("coverage/cells", "coverage/velocity_range", "dynamics/heldout_log_likelihood")
+        return {k.split("/")[-1]: f"{metrics[k]:.3g}" for k in shown if k in metrics}
+
+    def _envs(self) -> list:
+        return [self.env]
 
 
 def train(cfg: DictConfig) -> dict:
