@@ -6,13 +6,13 @@ from script_loading import sigkill_after
 from tensordict import TensorDict
 
 from umrl.checkpoints import load_diayn_checkpoint
+from umrl.checkpoints.file import read_checkpoint
 from umrl.envs import make_env
 from umrl.modules.discriminator import make_discriminator
 from umrl.modules.sac import make_skill_actor, make_skill_qvalue
 from umrl.modules.stacked_mlp import StackedMLP, linear_layers
 from umrl.objectives.diayn import DIAYNLoss, DIAYNUpdate, make_diayn_optimizers
 from umrl.objectives.stacked_diayn import StackedDIAYNLoss, StackedDIAYNUpdate
-from umrl.runtime import read_checkpoint
 from umrl.seed_replay import SeedReplay
 from umrl.trainers import compose
 from umrl.trainers.diayn import DIAYNTrainer, train
@@ -110,6 +110,58 @@ def test_stacked_updates_follow_diayn_update_and_write_back():
         stacked.copy_to(s, copy)
         for (name, a), b in zip(loss.state_dict().items(), copy.state_dict().values(), strict=True):
             torch.testing.assert_close(b, a, rtol=1e-9, atol=1e-10, msg=name)
+
+
+def noisy_batch(num_seeds, dtype, seed):
+    """``batch_of`` with the action noise the stacked loss reads, drawn from ``seed``."""
+    g = torch.Generator().manual_seed(seed + 1000)
+    batch = batch_of(num_seeds, dtype=dtype, seed=seed)
+    batch.set("action_noise", torch.randn(num_seeds, B, ACT, generator=g, dtype=dtype))
+    return batch.set(("next", "action_noise"), torch.randn(num_seeds, B, ACT, generator=g, dtype=dtype))
+
+
+@pytest.mark.parametrize("dtype, tolerance", [(torch.float64, 1e-13), (torch.float32, 2e-6)])
+@pytest.mark.parametrize("fixed_alpha, num_seeds", [(True, 1), (False, 3)])
+def test_hand_derived_gradients_equal_autograds(dtype, tolerance, fixed_alpha, num_seeds):
+    """StackedDIAYNLoss.gradients against its forward + autograd on the same batch and noise: the same outputs (the
+    losses within 1e-6; measured equal), and every gradient within ``tolerance`` of the largest element of its
+    tensor (measured: 6e-16 in float64, 2.2e-7 in float32; the matmuls are grouped differently)."""
+    previous = torch.get_default_dtype()
+    torch.set_default_dtype(dtype)
+    try:
+        losses = [seed_loss(s, fixed_alpha=fixed_alpha, target_entropy=-2.0) for s in range(num_seeds)]
+        reference, derived = (StackedDIAYNLoss.from_losses(losses, gamma=0.9) for _ in range(2))
+    finally:
+        torch.set_default_dtype(previous)
+    batch = noisy_batch(num_seeds, dtype, seed=3)
+    batch["next", "terminated"][0, :4] = True
+    expected = reference(batch)
+    sum(expected[key].sum() for key in LOSSES).backward()
+    out = derived.gradients(batch)
+    for key, value in expected.items():
+        torch.testing.assert_close(out[key], value.detach(), rtol=0, atol=1e-6 if key in LOSSES else 0, msg=key)
+    named = dict(derived.named_parameters())
+    trained = {name: p for name, p in reference.named_parameters() if p.grad is not None}
+    assert {name for name, p in named.items() if p.grad is not None} == set(trained)
+    for name, parameter in trained.items():
+        scale = parameter.grad.abs().max()
+        torch.testing.assert_close(named[name].grad, parameter.grad, rtol=0, atol=tolerance * scale, msg=name)
+
+
+def test_twenty_hand_derived_updates_follow_the_autograd_updates():
+    """20 Adam + Polyak updates of three seeds (learned alpha) with either gradients, float32: every parameter within
+    1e-6 (measured: 3e-8) after them."""
+    losses = [seed_loss(s, fixed_alpha=False, target_entropy=-2.0).float() for s in range(3)]
+    updates = [StackedDIAYNUpdate(StackedDIAYNLoss.from_losses(losses, gamma=0.9), lr=1e-3, discriminator_lr=1e-3,
+                                  tau=0.1, gradients=gradients) for gradients in ("autograd", "analytic")]
+    for step in range(20):
+        batch = noisy_batch(3, torch.float32, seed=step)
+        outs = [update(batch) for update in updates]
+    torch.testing.assert_close(outs[1], outs[0], rtol=0, atol=1e-5)
+    for (name, a), b in zip(updates[0].loss.state_dict().items(), updates[1].loss.state_dict().values(), strict=True):
+        torch.testing.assert_close(b, a, rtol=0, atol=1e-6, msg=name)
+    with pytest.raises(ValueError, match="gradients='numeric' is not one of"):
+        StackedDIAYNUpdate(updates[0].loss, lr=1e-3, discriminator_lr=1e-3, tau=0.1, gradients="numeric")
 
 
 @pytest.mark.parametrize("per_network_below", [0.0, 100.0])
@@ -262,7 +314,7 @@ def test_a_killed_run_of_two_seeds_resumes_to_the_uninterrupted_numbers(tmp_path
     command = ["recipes/diayn.py", "logger.backend=none", "progress=false", f"output_dir={killed}", "num_skills=3", "env.horizon=10",
                 "collector.init_random_frames=40", "network.hidden=[16,16]", "network.discriminator_hidden=[16]",
                 "replay_buffer.batch_size=16", "replay_buffer.size=1000", "eval.episodes_per_skill=2", *overrides]
-    sigkill_after(command, killed / "checkpoints" / "step_80.pt")
+    sigkill_after(command, killed / "checkpoints" / "step_80.safetensors")
     resumed = train(tiny(killed, "half_cheetah", *overrides, "resume=true"))
     whole = train(tiny(tmp_path / "whole", "half_cheetah", *overrides))
     a, b = read_checkpoint(whole["checkpoint"]), read_checkpoint(resumed["checkpoint"])

@@ -12,6 +12,10 @@ among three and alone differ by at most 3e-8 after 23-82 updates, float32; ``tes
 It is built from, and written back to, ordinary ``nn.Linear`` stacks (TorchRL's :class:`~torchrl.modules.MLP`):
 :meth:`StackedMLP.from_linears` copies each network's ``nn.Linear`` layers in order, :meth:`StackedMLP.copy_to`
 writes network ``n`` back into such a stack, so per-seed checkpoints stay in the single-network format.
+
+Besides autograd, :meth:`StackedMLP.forward_saving` and :meth:`StackedMLP.backward` give a hand-derived backward pass
+(the activations kept in the forward, two matmuls and one ReLU mask per layer, no autograd graph), which multi-seed
+DIAYN's update uses (:meth:`umrl.objectives.stacked_diayn.StackedDIAYNLoss.gradients`).
 """
 from __future__ import annotations
 
@@ -93,6 +97,44 @@ class StackedMLP(nn.Module):
                 x = torch.relu(x)
         return x
 
+    @torch.no_grad()
+    def forward_saving(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """``[x, h_1, ..., h_{L-1}, y]`` for input ``x`` [N, M, in]: the input, every hidden layer's output (after
+        its ReLU) and the output ``y`` [N, M, out], as :meth:`forward` computes them, for :meth:`backward`."""
+        per_network = self.per_network_matmuls(x)
+        activations = [x]
+        for index, (weight, bias) in enumerate(zip(self.weights, self.biases)):
+            x = _matmul(x, weight.transpose(-1, -2), per_network, bias)
+            if index < self.depth - 1:
+                x = x.relu_()
+            activations.append(x)
+        return activations
+
+    @torch.no_grad()
+    def backward(self, activations: Sequence[torch.Tensor], grad_output: torch.Tensor, *,
+                 weight_rows: slice | None = None, input_rows: slice | None = None,
+                 input_columns: slice | None = None) -> torch.Tensor | None:
+        """Backpropagate ``grad_output`` [N, M, out] (the gradient of a loss by the output of
+        :meth:`forward_saving`, which returned ``activations``) and set every parameter's ``.grad`` (replacing it).
+
+        ``weight_rows``: only these rows of the batch contribute to the parameters' gradients (the others are
+        propagated to the input only, as through networks read detached); None: all. ``input_rows`` and
+        ``input_columns``: also return the gradient by those rows and columns of the input, ``[N, rows, columns]``
+        (None for ``input_rows``: no input gradient is computed)."""
+        per_network = self.per_network_matmuls(grad_output)
+        rows = slice(None) if weight_rows is None else weight_rows
+        grad = grad_output
+        for index in reversed(range(self.depth)):
+            weight, layer_input = self.weights[index], activations[index]
+            if index == 0 and input_rows is not None:
+                weight_in = weight if input_columns is None else weight[..., input_columns]
+                grad_input = _matmul(grad[:, input_rows], weight_in, per_network)
+            weight.grad = _matmul(grad[:, rows].transpose(-1, -2), layer_input[:, rows], per_network)
+            self.biases[index].grad = grad[:, rows].sum(-2)
+            if index > 0:  # through the layer, then the ReLU in front of it (its output > 0: relu's own backward)
+                grad = torch.ops.aten.threshold_backward(_matmul(grad, weight, per_network), layer_input, 0.0)
+        return grad_input if input_rows is not None else None
+
     def per_network_matmuls(self, x: torch.Tensor) -> bool:
         """Whether to evaluate network by network (one ``linear`` each) rather than in one ``baddbmm``: on a CPU
         when fewer than :attr:`PER_NETWORK_BELOW` networks per torch thread are stacked. CPU ``bmm`` gives each
@@ -106,3 +148,17 @@ class StackedMLP(nn.Module):
         for layer, weight, bias in zip(layers, self.weights, self.biases, strict=True):
             layer.weight.copy_(weight[index])
             layer.bias.copy_(bias[index])
+
+
+def _matmul(a: torch.Tensor, b: torch.Tensor, per_network: bool, bias: torch.Tensor | None = None) -> torch.Tensor:
+    """``a @ b (+ bias)`` for stacks ``a`` [N, M, K], ``b`` [N, K, P], ``bias`` [N, P]: one ``bmm``/``baddbmm``, or
+    one ``mm``/``addmm`` per network written into a preallocated result (``per_network``: no stacking copy)."""
+    if not per_network:
+        return torch.bmm(a, b) if bias is None else torch.baddbmm(bias.unsqueeze(-2), a, b)
+    out = a.new_empty(a.shape[0], a.shape[1], b.shape[2])
+    for index in range(a.shape[0]):
+        if bias is None:
+            torch.mm(a[index], b[index], out=out[index])
+        else:
+            torch.addmm(bias[index], a[index], b[index], out=out[index])
+    return out

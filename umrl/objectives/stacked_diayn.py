@@ -14,7 +14,12 @@ The action noise is an input (``"action_noise"`` and ``("next", "action_noise")`
 so that each seed's noise comes from that seed's own generator (:class:`umrl.seed_replay.SeedReplay` draws it with
 the sample): seed ``s``'s draws never depend on which other seeds share the program.
 
-:class:`StackedDIAYNUpdate` takes one Adam step on every seed's networks and Polyak-averages the targets. Adam and
+:meth:`StackedDIAYNLoss.gradients` computes the same outputs and every gradient by a hand-derived backward pass (no
+autograd graph: the networks' activations kept, two matmuls and a ReLU mask per layer), equal to autograd's to float
+rounding (measured: 2.2e-7 of a gradient's largest element in float32, 6e-16 in float64; ``tests/test_diayn_seeds.py``).
+
+:class:`StackedDIAYNUpdate` takes one Adam step on every seed's networks and Polyak-averages the targets, with the
+hand-derived gradients by default (``gradients="autograd"``: the loss's forward and autograd). Adam and
 Polyak averaging are element-wise, so one optimiser over stacked parameters is S independent optimisers (to float
 rounding: a fused kernel's vectorised loop and its tail may round an element differently).
 """
@@ -34,9 +39,12 @@ from umrl.modules.discriminator import ObservationDims
 from umrl.modules.stacked_mlp import StackedMLP, linear_layers
 from umrl.objectives.diayn import DIAYNLoss, UpdateRunner, check_capturable
 from umrl.transforms.discriminator_reward import skill_reward
-from umrl.validation import check_keys
+from umrl.validation import check_keys, check_probability
 
-__all__ = ["StackedDIAYNLoss", "StackedDIAYNUpdate"]
+__all__ = ["GRADIENTS", "StackedDIAYNLoss", "StackedDIAYNUpdate"]
+
+GRADIENTS = ("analytic", "autograd")
+"""How :class:`StackedDIAYNUpdate` computes gradients: derived by hand (the default) or by autograd."""
 
 _LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
 
@@ -45,6 +53,13 @@ def _weight_bias_pairs(params: TensorDictBase) -> list[tuple[torch.Tensor, torch
     """The (weight, bias) leaves of a TorchRL MLP's parameter TensorDict, in layer order."""
     leaves = list(params.flatten_keys().values())
     return list(zip(leaves[0::2], leaves[1::2]))
+
+
+def _twin_input(observation: torch.Tensor, skill: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+    """The input ``[2S, M, in]`` of the twin Q-networks (rows ``2s``, ``2s + 1``: seed ``s``'s pair), each ``[S, M, ·]``."""
+    x = torch.cat([observation, skill, action], -1)
+    S, M = x.shape[:2]
+    return x.unsqueeze(1).expand(S, 2, M, x.shape[-1]).reshape(2 * S, M, x.shape[-1])
 
 
 def tanh_normal_sample(loc: torch.Tensor, scale: torch.Tensor, noise: torch.Tensor):
@@ -139,7 +154,7 @@ class StackedDIAYNLoss(LossModule):
                              f"got {qvalue.num_networks} and {target_qvalue.num_networks}.")
         self.actor, self.qvalue, self.discriminator = actor, qvalue, discriminator
         self.target_qvalue = target_qvalue.requires_grad_(False)
-        self.num_skills, self.gamma, self.fixed_alpha = num_skills, gamma, fixed_alpha
+        self.num_skills, self.gamma, self.fixed_alpha = num_skills, check_probability("gamma", gamma), fixed_alpha
         self.target_entropy = target_entropy
         if fixed_alpha:
             self.register_buffer("log_alpha", log_alpha.detach().clone())
@@ -211,16 +226,15 @@ class StackedDIAYNLoss(LossModule):
 
     def twin_q(self, observation, skill, action, network: StackedMLP, *, detach: bool = False) -> torch.Tensor:
         """``[S, 2, M]``: both Q-networks of every seed at (observation, skill, action), each ``[S, M, ·]``."""
-        x = torch.cat([observation, skill, action], -1)
-        S, M = x.shape[:2]
-        x = x.unsqueeze(1).expand(S, 2, M, x.shape[-1]).reshape(2 * S, M, x.shape[-1])
-        return network(x, detach=detach).view(S, 2, M)
+        return network(_twin_input(observation, skill, action), detach=detach).view(observation.shape[0], 2, -1)
 
     def discriminator_logits(self, observation: torch.Tensor) -> torch.Tensor:
         """D's logits ``[S, M, K]`` for every seed."""
-        if self.input_dims is not None:
-            observation = self.input_dims(observation)
-        return self.discriminator(observation)
+        return self.discriminator(self.discriminator_input(observation))
+
+    def discriminator_input(self, observation: torch.Tensor) -> torch.Tensor:
+        """The observation dims D sees (all of them unless ``discriminator_input_dims``)."""
+        return observation if self.input_dims is None else self.input_dims(observation)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         k = self.tensor_keys
@@ -263,6 +277,83 @@ class StackedDIAYNLoss(LossModule):
             "pseudo_reward": reward.mean(-1),
         }, batch_size=[self.num_seeds])
 
+    @torch.no_grad()
+    def gradients(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """:meth:`forward`'s outputs (detached) on ``tensordict``, with every trained parameter's ``.grad`` (actor,
+        Q-networks, discriminator, a learned ``log_alpha``) set to the gradient of their sum over seeds: autograd's
+        result, derived by hand and without an autograd graph (equal to float rounding, ``tests/test_diayn_seeds.py``).
+
+        Each network keeps its activations in the forward (:meth:`StackedMLP.forward_saving`) and backpropagates
+        with two matmuls and a ReLU mask per layer (:meth:`StackedMLP.backward`). The actor runs once on ``[s; s']``
+        (the actor loss at s, the target's a' at s'), the Q-networks once on ``[(s, a); (s, a~)]``: the actor loss's
+        rows reach only the action input, as through ``SACLoss``'s detached Q parameters. With ``u = loc + scale
+        noise``, ``a~ = tanh(u)``, ``log pi = sum_j (log N(noise_j) - log scale_j - log(1 - tanh(u_j)^2))``, the
+        actor loss ``mean_b (alpha log pi - min_i Q_i(s, a~))`` has ``d/du = (2 alpha tanh u - dQ_min/da (1 -
+        tanh(u)^2)) / B``, ``d/dloc = d/du`` and ``d/dscale = d/du noise - alpha / (B scale)``; the biased softplus
+        ``scale = softplus(raw + c) + 0.01`` gives ``d/draw = d/dscale sigmoid(raw + c)`` (its ``clamp_min(1e-4)``
+        never binds). The Q loss gives ``2 (Q_i(s, a) - y) / B`` at each Q output, the cross-entropy ``(softmax -
+        onehot(z)) / B`` at D's logits, a learned alpha's loss ``-mean_b (log pi + H)`` at ``log_alpha``.
+        """
+        k = self.tensor_keys
+        obs, skill, action = tensordict.get(k.observation), tensordict.get(k.skill), tensordict.get(k.action)
+        next_obs, next_skill = tensordict.get(("next", k.observation)), tensordict.get(("next", k.skill))
+        noise = tensordict.get(k.noise)
+        not_terminated = (~tensordict.get(("next", k.terminated))).squeeze(-1).to(obs.dtype)
+        S, B, act_dim = *obs.shape[:2], action.shape[-1]
+        alpha = self.log_alpha.exp().unsqueeze(-1)  # [S, 1]
+        alpha_by_batch = (alpha / B).unsqueeze(-1)  # [S, 1, 1]
+
+        # discriminator: the pseudo-reward and the cross-entropy from one log-softmax
+        d_activations = self.discriminator.forward_saving(
+            self.discriminator_input(tensordict.get(k.discriminator_observation)))
+        log_p = torch.log_softmax(d_activations[-1], -1)  # [S, B, K]
+        reward = ((log_p + math.log(log_p.shape[-1])) * skill).sum(-1)  # [S, B], skill_reward's arithmetic
+        loss_discriminator = -(log_p * skill).sum(-1).mean(-1)
+        self.discriminator.backward(d_activations, (log_p.exp() - skill).div_(B))
+
+        # the actor at s (rows :B) and at s' (rows B:, the target's next action)
+        actor_activations = self.actor.forward_saving(
+            torch.cat([torch.cat([obs, skill], -1), torch.cat([next_obs, next_skill], -1)], 1))
+        loc, scale = self.scale_map(actor_activations[-1])
+        next_action, next_log_prob = tanh_normal_sample(loc[:, B:], scale[:, B:], tensordict.get(("next", k.noise)))
+        next_q = self.target_qvalue.forward_saving(_twin_input(next_obs, next_skill, next_action))[-1].view(S, 2, B)
+        next_value = (next_q - alpha.unsqueeze(1) * next_log_prob.unsqueeze(1)).min(1).values
+        target = reward + self.gamma * not_terminated * next_value
+
+        new_action, log_prob = tanh_normal_sample(loc[:, :B], scale[:, :B], noise)
+        q_activations = self.qvalue.forward_saving(_twin_input(
+            torch.cat([obs, obs], 1), torch.cat([skill, skill], 1), torch.cat([action, new_action], 1)))
+        q = q_activations[-1].view(S, 2, 2 * B)
+        error, min_q = q[..., :B] - target.unsqueeze(1), q[..., B:].min(1)
+        loss_qvalue = error.pow(2).sum(1).mean(-1)
+        loss_actor = (alpha * log_prob - min_q.values).mean(-1)
+
+        # Q: the Q loss's rows train the networks; the actor loss's reach the action through the lower twin only
+        grad_q = torch.cat([error.mul_(2.0 / B),
+                            torch.zeros_like(error).scatter_(1, min_q.indices.unsqueeze(1), -1.0 / B)], -1)
+        grad_action = self.qvalue.backward(q_activations, grad_q.view(2 * S, 2 * B, 1), weight_rows=slice(0, B),
+                                           input_rows=slice(B, 2 * B), input_columns=slice(-act_dim, None))
+        grad_action = grad_action.view(S, 2, B, act_dim).sum(1)  # both twins read the same action
+
+        # the actor: through tanh, the reparametrised sample and the biased softplus of the scale
+        grad_u = alpha_by_batch * 2.0 * new_action + grad_action * (1.0 - new_action * new_action)
+        grad_scale = grad_u * noise - alpha_by_batch / scale[:, :B]
+        raw_scale = actor_activations[-1][:, :B, act_dim:]
+        grad_raw = grad_scale.mul_(torch.sigmoid(raw_scale + self.scale_map.scale_mapping.bias))
+        self.actor.backward([activation[:, :B] for activation in actor_activations], torch.cat([grad_u, grad_raw], -1))
+
+        if self.fixed_alpha:
+            loss_alpha = torch.zeros_like(loss_actor)
+        else:
+            loss_alpha = -(self.log_alpha.unsqueeze(-1) * (log_prob + self.target_entropy)).mean(-1)
+            self.log_alpha.grad = -(log_prob + self.target_entropy).mean(-1)
+        return TensorDict({
+            "loss_actor": loss_actor, "loss_qvalue": loss_qvalue, "loss_alpha": loss_alpha,
+            "loss_discriminator": loss_discriminator, "alpha": alpha.squeeze(-1), "entropy": -log_prob.mean(-1),
+            "discriminator_accuracy": (d_activations[-1].argmax(-1) == skill.argmax(-1)).float().mean(-1),
+            "pseudo_reward": reward.mean(-1),
+        }, batch_size=[S])
+
 
 class StackedDIAYNUpdate:
     """One update of every seed: :class:`StackedDIAYNLoss` -> backward -> Adam steps -> Polyak-averaged targets.
@@ -276,6 +367,8 @@ class StackedDIAYNUpdate:
         tau (float): Polyak rate of the target Q-networks (TorchRL's ``SoftUpdate``: ``target.lerp_(online, tau)``).
         compile (bool or str), cudagraphs (bool): as :class:`~umrl.objectives.diayn.DIAYNUpdate` (CUDA only for
             graphs, whose batches must keep one shape; the optimisers are then built ``capturable``).
+        gradients (str): ``"analytic"`` (default): :meth:`StackedDIAYNLoss.gradients`, the hand-derived backward;
+            ``"autograd"``: the loss's forward and autograd (the reference it is tested against).
 
     ``update(batch)`` returns the loss's output, detached (batch ``[S]``). :attr:`optimizers` holds the one Adam
     optimiser (``{"adam": ...}``, for checkpoints), whose parameter groups are the actor, the Q-networks, the
@@ -284,8 +377,10 @@ class StackedDIAYNUpdate:
     """
 
     def __init__(self, loss: StackedDIAYNLoss, *, lr: float, discriminator_lr: float, tau: float,
-                 compile: bool | str = False, cudagraphs: bool = False):
-        self.loss, self.tau = loss, tau
+                 compile: bool | str = False, cudagraphs: bool = False, gradients: str = "analytic"):
+        if gradients not in GRADIENTS:
+            raise ValueError(f"gradients={gradients!r} is not one of {GRADIENTS}.")
+        self.loss, self.tau, self.gradients = loss, tau, gradients
         adam = {"capturable": cudagraphs, "fused": True}
         groups = [{"params": list(loss.actor.parameters())}, {"params": list(loss.qvalue.parameters())},
                   {"params": list(loss.discriminator.parameters()), "lr": discriminator_lr}]
@@ -302,8 +397,11 @@ class StackedDIAYNUpdate:
         return self.runner(batch)
 
     def _step(self, batch: TensorDictBase) -> TensorDictBase:
-        out = self.loss(batch)
-        sum(out[key].sum() for key in ("loss_actor", "loss_qvalue", "loss_alpha", "loss_discriminator")).backward()
+        if self.gradients == "analytic":
+            out = self.loss.gradients(batch)
+        else:
+            out = self.loss(batch)
+            sum(out[key].sum() for key in ("loss_actor", "loss_qvalue", "loss_alpha", "loss_discriminator")).backward()
         for optimizer in self.optimizers.values():
             optimizer.step()
             optimizer.zero_grad(set_to_none=True)
