@@ -105,7 +105,7 @@ def test_normalizer_standardises_and_rejects_bad_shapes():
     torch.testing.assert_close(y.std(0), torch.ones(3), atol=1e-2, rtol=0)
     with pytest.raises(ValueError, match="expected obs"):
         bnn.normalize(obs, act[:, :1], obs)
-    with pytest.raises(ValueError, match="positive"):
+    with pytest.raises(ValueError, match=r"prior_std: got 0.0; expected a finite number > 0"):
         BayesianDynamics(3, 2, prior_std=0.0)
 
 

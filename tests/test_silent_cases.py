@@ -1,4 +1,6 @@
 """Settings that would run to a clean exit without doing the work asked for are refused before any work."""
+import json
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -7,6 +9,7 @@ import umrl.trainers
 from umrl.configs import ConfigError, validate
 from umrl.configs.diayn import DIAYNConfig
 from umrl.metatest import cell_finished, read_rows, run_matrix, summary_table
+from umrl.metatest.results import text_sha256
 from umrl.optim.hvp import KLHessian
 from umrl.optim.trpo import TRPOStep
 from umrl.proposals import make_proposal
@@ -25,11 +28,12 @@ def test_diayn_without_a_single_update_is_refused(tmp_path, overrides, message):
     assert not (tmp_path / "checkpoints").exists()
 
 
-@pytest.mark.parametrize("num_skills", [0, -3, 2.5])
+@pytest.mark.parametrize("num_skills", [0, -3, 2.5, None])
 def test_a_random_proposal_needs_at_least_one_skill(num_skills):
-    with pytest.raises(ValueError, match=rf"num_skills: got {num_skills}; expected null \(the env's default\) or an "
-                                         r"integer >= 1"):
-        make_proposal("random", "point_nav", num_tasks=2, trajectories_per_task=1, num_skills=num_skills)
+    with pytest.raises(ValueError, match=rf"num_skills: got {num_skills}; expected an integer >= 1 with proposal "
+                                         r"random"):
+        make_proposal("random", "point_nav", num_tasks=2, trajectories_per_task=1, num_skills=num_skills,
+                      discriminator_hidden=[8])
 
 
 def test_trpo_warns_when_a_nan_kl_rejects_the_step():
@@ -50,6 +54,7 @@ def test_trpo_warns_when_a_nan_kl_rejects_the_step():
 
 
 HEADER = "method,env,seed,task,step,return\n"
+SETTINGS = {"method": "scratch", "env": "point_nav", "seed": 0}
 
 
 @pytest.mark.parametrize("text, message", [
@@ -58,22 +63,24 @@ HEADER = "method,env,seed,task,step,return\n"
 ])
 def test_a_bad_cached_cell_is_named_and_recomputed(tmp_path, text, message):
     cell = tmp_path / "seed0-abc.csv"
-    cell.write_text(text)
-    cell.with_suffix(".json").write_text("{}")
+    cell.write_text(text)  # its JSON records it: the file is as written, and still no table
+    cell.with_suffix(".json").write_text(json.dumps({"settings": SETTINGS, "csv_sha256": text_sha256(text)}))
     with pytest.raises(ValueError, match=f"cannot read results file {cell}: .*{message}"):
         read_rows([cell])
-    with pytest.warns(UserWarning, match=f"recomputing the cell: cannot read results file {cell}"):
-        assert not cell_finished(cell)
+    with pytest.warns(UserWarning, match=f"recomputing the cell {cell}: cannot read results file {cell}"):
+        assert not cell_finished(cell, SETTINGS)
     assert not cell.exists() and not cell.with_suffix(".json").exists()
 
 
 def test_a_corrupt_cell_json_is_named_and_recomputed(tmp_path):
     cell = tmp_path / "seed0-abc.csv"
-    cell.write_text(HEADER + "scratch,point_nav,0,0,0,1.5\n")
-    assert cell_finished(cell) and read_rows([cell])[0]["return"] == 1.5
+    text = HEADER + "scratch,point_nav,0,0,0,1.5\n"
+    cell.write_text(text)
+    cell.with_suffix(".json").write_text(json.dumps({"settings": SETTINGS, "csv_sha256": text_sha256(text)}))
+    assert cell_finished(cell, SETTINGS) and read_rows([cell])[0]["return"] == 1.5
     cell.with_suffix(".json").write_text('{"lr": 0.0')
-    with pytest.warns(UserWarning, match="recomputing the cell"):
-        assert not cell_finished(cell)
+    with pytest.warns(UserWarning, match=f"recomputing the cell {cell}: {cell.with_suffix('.json')}: Expecting"):
+        assert not cell_finished(cell, SETTINGS)
     assert not cell.exists()
 
 

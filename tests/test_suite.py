@@ -1,5 +1,6 @@
 """Benchmark suite: planning, skipping finished cells, resuming a killed run, the Ray launcher (cache keys,
 validation and failures: test_suite_cache.py)."""
+import json
 import os
 import signal
 import subprocess
@@ -13,11 +14,12 @@ from script_loading import compose_config
 import umrl.trainers
 from umrl import suite
 from umrl.checkpoints import MAML_FORMAT
+from umrl.checkpoints.folder import Checkpointer
 from umrl.configs import ConfigError, validate
 from umrl.configs.suite import SuiteConfig, pretrain_seeds
 from umrl.launch import RayLauncher, run_jobs
 from umrl.metatest import read_rows, write_rows
-from umrl.runtime import Checkpointer
+from umrl.metatest.results import text_sha256
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -135,6 +137,10 @@ def test_existing_cell_is_skipped(tmp_path):
     jobs = suite.plan(cfg, group="g", code=suite.code_version())
     cell = next(j for j in jobs if j.key == "cell/point_nav/scratch/seed0").args[0]
     existing = write_rows(planted, cell.output)
+    with existing.open(newline="") as f:  # a finished cell records its settings and its CSV's hash beside it
+        existing.with_suffix(".json").write_text(json.dumps({
+            "method": "scratch", "env": "point_nav", "lr": 0.01, "lr_schedule": "constant",
+            "settings": cell.settings(), "csv_sha256": text_sha256(f.read())}, default=str))
     suite.run_suite(cfg, log=lambda _: None)
     assert read_rows([existing]) == planted  # untouched
     rows = read_rows([tmp_path / "results.csv"])

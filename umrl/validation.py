@@ -140,6 +140,17 @@ def check_finite(name: str, value: Any) -> Any:
     return value
 
 
+def check_not_diverged(values: Mapping[str, Any], where: str) -> None:
+    """The training loops' guard: ``FloatingPointError`` naming every tensor of ``values`` (losses, rewards,
+    adapted parameters) holding a NaN or an infinity, ``where`` saying which step produced them. Not an argument
+    check (:func:`check_finite` is): the inputs were valid and the run diverged."""
+    bad = [k for k, v in values.items() if torch.is_tensor(v) and not torch.isfinite(v).all()]
+    if bad:
+        raise FloatingPointError(
+            f"non-finite {bad} in {where}: lower the learning rate or check the inputs; the last checkpoint is intact."
+        )
+
+
 def check_bool(name: str, value: Any) -> bool:
     """``value`` if it is a ``bool`` (``true``/``false`` in a config)."""
     if not isinstance(value, bool):
@@ -313,6 +324,7 @@ __all__ = [
     "check_keys",
     "check_list",
     "check_mapping",
+    "check_not_diverged",
     "check_path_exists",
     "check_positive",
     "check_probability",

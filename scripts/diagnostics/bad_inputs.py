@@ -4,18 +4,21 @@ silent.
     python scripts/diagnostics/bad_inputs.py                  # every case, a line each, then the counts per kind
     python scripts/diagnostics/bad_inputs.py --only seed      # the cases whose label contains "seed"
     python scripts/diagnostics/bad_inputs.py --kinds files --jobs 3 --timeout 400   # the file kinds, 3 at a time
+    python scripts/diagnostics/bad_inputs.py --kinds other --jobs 2    # cells, logs and reports, non-finite values
 
 A few small runs made first give the cases a real MAML and DIAYN checkpoint to misuse. Each case runs in its own
 process under a time limit, in a temporary directory: the first 40 ("old kinds": values, sizes, names, runs of
 another kind, the Python API) as a fresh ``python`` command line; the file kinds (special files, hostile-but-hash-
-valid trees and metadata, damaged files, full disks, long and odd names) as a snippet in a child forked from the
-probe once torch and umrl are imported, in a folder of its own (they make the files a hostile writer could: the
+valid trees and metadata, damaged files, full disks, long and odd names) and the other kinds (a meta-test cell's
+output holding a file of other settings, a cut one or a folder; an unwritable ``WANDB_DIR``; report columns beyond
+K; NaN and inf given to the Python API's constructors) as a snippet in a child forked from the probe once torch and
+umrl are imported, in a folder of its own (they make the files a hostile writer could: the
 hash in a checkpoint is an integrity check anyone can recompute). A case expects one of three outcomes, and is
 
 - **clear** when it got it: ``refuse`` exits non-zero with a line in umrl's format (``<key>: got …; expected …``,
   a checkpoint's ``cannot read checkpoint <path> (<what>): <why>`` or ``cannot write checkpoint <path>: <why>``,
-  a missing one's ``no checkpoint file at <path>``); ``warn`` exits 0 having printed such a line (a resume that
-  skipped a bad newest checkpoint);
+  a missing one's ``no checkpoint file at <path>``, a cell's ``recomputing the cell <path>: <why>``); ``warn``
+  exits 0 having printed such a line (a resume that skipped a bad newest checkpoint, a cell file recomputed);
 - **fine** when a ``run`` case (a legal input, or a stray file umrl must leave alone) exits 0;
 - **obscure** when it exits non-zero without such a line, or runs past the time limit;
 - **silent** when a ``refuse`` or ``warn`` case exits 0 without a word in that format.
@@ -48,7 +51,8 @@ REPO = Path(__file__).resolve().parents[2]
 MESSAGE = re.compile(r"\S: got .*; expected "  # a checkpoint's own errors: its file, what it is, why
                      r"|cannot read checkpoint \S+ \([^)]*\): |cannot write checkpoint \S+: "
                      r"|\S+ is not a regular checkpoint file \(|no checkpoint (file )?at \S+"
-                     r"|\S+ is in use by |\S+ holds checkpoints of an earlier run")  # run folders' locks
+                     r"|\S+ is in use by |\S+ holds checkpoints of an earlier run"  # run folders' locks
+                     r"|recomputing the cell \S+: ")  # a cell's file of other settings, or cut short
 MAML_TINY = ["+profile=maml_tiny", "iterations=2", "logger.backend=none", "progress=false"]
 DIAYN_TINY = ["+profile=diayn_tiny", "logger.backend=none", "progress=false"]
 VIME_TINY = ["+profile=vime_tiny", "iterations=1", "logger.backend=none", "progress=false"]
@@ -146,7 +150,7 @@ CASES = [
     snippet("a checkpoint with 64 bytes zeroed", """
         import glob
         from umrl.checkpoints import load_maml_policy
-        path = sorted(glob.glob("{tmp}/oracle/checkpoints/step_*.pt"))[-1]
+        path = sorted(glob.glob("{tmp}/oracle/checkpoints/step_*.safetensors"))[-1]
         data = bytearray(open(path, "rb").read()); mid = len(data) // 2; data[mid:mid + 64] = bytes(64)
         open("{tmp}/zeroed.pt", "wb").write(data)
         load_maml_policy("{tmp}/zeroed.pt")"""),
@@ -213,9 +217,9 @@ import json, math, os, shutil, subprocess, sys
 from pathlib import Path
 import safetensors.torch, torch
 from umrl import checkpoints
-from umrl.checkpoint_file import FILE_FORMAT, content_hash, read_state, write_state
+from umrl.checkpoints.file import FILE_FORMAT, content_hash, read_checkpoint, write_checkpoint
 from umrl.checkpoints import DIAYN_FORMAT, MAML_FORMAT, VIME_FORMAT
-from umrl.runtime import Checkpointer
+from umrl.checkpoints.folder import Checkpointer
 TMP = Path("{tmp}")
 CASE = TMP / "case_%d"
 CASE.mkdir()
@@ -373,7 +377,7 @@ def hostile_metadata_cases() -> list[Case]:
             cases.append(file_case("hostile metadata", f"{loader}(<{label}, hash valid>)", f"""
                 fmt, meta, entries = tiny({kind!r}); width, setting = {WIDTH[kind]!r}, {SETTING[kind]!r}
                 {damage}
-                write_state({{"format": fmt.name, "meta": meta, **entries, "config": None}}, CASE / "step_1.pt")
+                write_checkpoint({{"format": fmt.name, "meta": meta, **entries, "config": None}}, CASE / "step_1.pt")
                 getattr(checkpoints, {loader!r})(CASE)"""))
     cases.append(file_case("hostile metadata", "load_maml_policy(<27 kB: ant, two 100,000-wide layers>)", """
         fmt, meta, entries = tiny("MAML")
@@ -381,18 +385,18 @@ def hostile_metadata_cases() -> list[Case]:
         checkpoints.load_maml_policy(CASE)"""))
     cases.append(file_case("hostile metadata", "run_cell(oracle) of a checkpoint with a NaN inner_lr", """
         from umrl.metatest import CellSpec, run_cell
-        state = read_state(latest("oracle")); state["meta"]["inner_lr"] = math.nan
+        state = read_checkpoint(latest("oracle")); state["meta"]["inner_lr"] = math.nan
         save(MAML_FORMAT, state["meta"], {k: v for k, v in state.items() if k not in ("format", "meta")}, step=2)
         run_cell(CellSpec(method="oracle", env="point_nav", seed=0, output=str(CASE / "cell.csv"), num_tasks=2,
                           checkpoint=str(CASE)))"""))
     cases.append(file_case("hostile metadata", "maml resume=true whose newest file has a NaN inner_lr", maml_resume_with(
-        """state = read_state(latest("oracle")); state["meta"]["inner_lr"] = math.nan
+        """state = read_checkpoint(latest("oracle")); state["meta"]["inner_lr"] = math.nan
         save(MAML_FORMAT, state["meta"], {k: v for k, v in state.items() if k not in ("format", "meta")},
              folder=path.parent, step=9)"""), expect="warn"))
     cases.append(file_case("hostile metadata", "diayn resume=true whose newest program state has a NaN weight", f"""
         from umrl.checkpoints.diayn import DIAYN_SEEDS_FORMAT
         shutil.copytree(TMP / "diayn", CASE / "run")
-        state = read_state(latest(CASE / "run"))
+        state = read_checkpoint(latest(CASE / "run"))
         name = next(k for k, v in state["loss"].items() if v.is_floating_point())
         state["loss"][name] = state["loss"][name].clone().fill_(math.nan)
         save(DIAYN_SEEDS_FORMAT, state["meta"], {{k: v for k, v in state.items() if k not in ("format", "meta")}},
@@ -463,11 +467,11 @@ def full_disk_cases() -> list[Case]:
             on_full_disk(["-m", "umrl.checkpoints.export_skills", str(TMP / "diayn"), str(DISK / "skills")],
                          size="8k")"""),
         case("Checkpointer.save onto a full disk", """
-            on_full_disk(["-c", "import torch; from umrl.runtime import Checkpointer; "
+            on_full_disk(["-c", "import torch; from umrl.checkpoints.folder import Checkpointer; "
                           f"Checkpointer({str(DISK)!r}).save({{'w': torch.zeros(100_000)}}, 1)"])"""),
         case("a full disk leaves no partial file", """
-            on_full_disk(["-c", "import torch, os; from umrl.checkpoint_file import write_state\\n"
-                          f"try:\\n    write_state({{'w': torch.zeros(100_000)}}, {str(DISK / 'x.pt')!r})\\n"
+            on_full_disk(["-c", "import torch, os; from umrl.checkpoints.file import write_checkpoint\\n"
+                          f"try:\\n    write_checkpoint({{'w': torch.zeros(100_000)}}, {str(DISK / 'x.pt')!r})\\n"
                           f"finally:\\n    assert not os.path.exists({str(DISK / 'x.pt')!r}), 'a partial file stayed'"])"""),
     ]
 
@@ -535,6 +539,119 @@ FILE_CASES = [*special_file_cases(), *hostile_tree_cases(), *hostile_metadata_ca
               *full_disk_cases(), *odd_name_cases(), *folder_lock_cases()]
 
 
+# ---- the remaining kinds: meta-test cells, where logs and reports go, non-finite values of the Python API --------
+CELL = """
+from dataclasses import replace
+from umrl.metatest import AdaptationConfig, CellSpec, run_cell
+cell = CellSpec(method="scratch", env="point_nav", seed=0, output=str(CASE / "cell.csv"), num_tasks=2,
+                protocol=AdaptationConfig(num_steps=1, num_trajectories=2, horizon=5))
+"""
+
+
+def cell_cases() -> list[Case]:
+    """What a cell's ``output`` may already hold: a file of other settings or cut short (named and recomputed),
+    something that is no file (refused before any work)."""
+    def case(label: str, body: str, expect: str = "refuse") -> Case:
+        return file_case("meta-test cells", label, CELL + textwrap.dedent(body), expect)
+
+    return [
+        case("run_cell over a finished cell of another K", """
+            run_cell(replace(cell, protocol=replace(cell.protocol, num_steps=2)))
+            run_cell(cell)""", "warn"),
+        case("run_cell over a finished cell of other tasks", """
+            run_cell(replace(cell, num_tasks=3))
+            run_cell(cell)""", "warn"),
+        case("run_cell over a finished cell of another method", """
+            run_cell(replace(cell, method="oracle", checkpoint=str(TMP / "oracle")))
+            run_cell(cell)""", "warn"),
+        case("run_cell over a cell csv cut at a row's end", """
+            run_cell(cell)
+            text = open(cell.output, newline="").read()
+            open(cell.output, "w", newline="").write(text[:text.rindex("\\r\\n", 0, len(text) - 2) + 2])
+            run_cell(cell)""", "warn"),
+        case("run_cell over a cell an older umrl wrote (no settings recorded)", """
+            run_cell(cell)
+            info = json.loads((CASE / "cell.json").read_text())
+            (CASE / "cell.json").write_text(json.dumps({k: v for k, v in info.items() if k != "settings"}))
+            run_cell(cell)""", "warn"),
+        case("run_cell where output is a folder", """
+            (CASE / "cell.csv").mkdir()
+            run_cell(cell)"""),
+        case("run_cell where output is a FIFO", """
+            os.mkfifo(CASE / "cell.csv")
+            run_cell(cell)"""),
+        case("run_cell where the cell's .json is a folder", """
+            (CASE / "cell.json").mkdir()
+            run_cell(cell)"""),
+        case("run_cell whose output folder is a file", """
+            (CASE / "afile").write_text("not a folder")
+            run_cell(replace(cell, output=str(CASE / "afile" / "cell.csv")))"""),
+    ]
+
+
+def logging_cases() -> list[Case]:
+    """Where metrics and tables go: an unwritable ``WANDB_DIR`` (wandb would write to /tmp instead), report columns
+    beyond K."""
+    def case(label: str, body: str, expect: str = "refuse") -> Case:
+        return file_case("logs and reports", label, body, expect)
+
+    wandb_env = 'env={**os.environ, "WANDB_DIR": str(CASE / "afile" / "below")}'
+    return [
+        case("maml logger.backend=wandb with WANDB_DIR below a file", f"""
+            (CASE / "afile").write_text("not a folder")
+            relay(["recipes/maml.py", *{MAML_TINY!r}, "logger.backend=wandb", f"output_dir={{CASE / 'run'}}"],
+                  {wandb_env})"""),
+        case("suite logger.backend=wandb with WANDB_DIR below a file", f"""
+            (CASE / "afile").write_text("not a folder")
+            relay(["benchmarks/suite.py", *{SUITE_TINY!r}, "logger.backend=wandb", f"output_dir={{CASE / 'suite'}}"],
+                  {wandb_env})"""),
+        case("suite report.steps=[0,1,5] with protocol.num_steps=1", f"""
+            relay(["benchmarks/suite.py", *{SUITE_TINY!r}, "logger.backend=none", "protocol.num_steps=1",
+                   "num_tasks=2", "protocol.num_trajectories=2", "protocol.horizon=5", "report.steps=[0,1,5]",
+                   f"output_dir={{CASE / 'suite'}}"])""", "warn"),
+    ]
+
+
+NON_FINITE = {  # the constructor, a call with the value x
+    "DIAYNLoss(alpha_init=nan)": "diayn_loss(alpha_init=x)",
+    "DIAYNLoss(target_entropy=inf)": "diayn_loss(target_entropy=x, fixed_alpha=False)",
+    "make_diayn_optimizers(lr=nan)": "make_diayn_optimizers(diayn_loss(), lr=x, discriminator_lr=1e-3)",
+    "DIAYNUpdate(tau=nan)": "DIAYNUpdate(diayn_loss(), {}, tau=x)",
+    "make_gaussian_policy(init_std=nan)": "make_gaussian_policy(2, 2, hidden=[8], init_std=x)",
+    "BayesianDynamics(prior_std=nan)": "BayesianDynamics(2, 2, prior_std=x)",
+    "BayesianDynamics(init_std=inf)": "BayesianDynamics(2, 2, init_std=x)",
+    "VIMEBonus(eta=nan)": "VIMEBonus(BayesianDynamics(2, 2), eta=x)",
+    "AdaptationConfig(gamma=nan)": "AdaptationConfig(gamma=x)",
+    "AdaptationConfig(lmbda=nan)": "AdaptationConfig(lmbda=x)",
+    "sgd_lr_factor('swept', 1, later_factor=nan)": "sgd_lr_factor('swept', 1, x)",
+    "TaskAdapter(lr=nan)": "TaskAdapter(make_gaussian_policy(2, 2, hidden=[8]), "
+                           "make_eval_env('point_nav', torch.zeros(2, 2), 2, seed=0, horizon=5), 2, optimizer='sgd', lr=x)",
+    "goal_within(tolerance=nan)": "goal_within(x)",
+}
+NON_FINITE_IMPORTS = """
+from umrl.envs.tasks import goal_within
+from umrl.metatest.protocol import AdaptationConfig, TaskAdapter, make_eval_env, sgd_lr_factor
+from umrl.modules import make_discriminator, make_gaussian_policy, make_skill_actor, make_skill_qvalue
+from umrl.modules.bnn import BayesianDynamics
+from umrl.objectives import DIAYNLoss
+from umrl.objectives.diayn import DIAYNUpdate, make_diayn_optimizers
+from umrl.transforms.vime_bonus import VIMEBonus
+def diayn_loss(**kwargs):
+    return DIAYNLoss(make_skill_actor(2, 4, 2, hidden=(8,)), make_skill_qvalue(2, 4, 2, hidden=(8,)),
+                     make_discriminator(2, 4, hidden=(8,)), num_skills=4, **kwargs)
+"""
+
+
+def non_finite_cases() -> list[Case]:
+    """A NaN or an infinity given to the Python API's constructors."""
+    return [file_case("non-finite values", label, NON_FINITE_IMPORTS
+                      + f"x = math.{'inf' if label.endswith('inf)') else 'nan'}\n{call}\n")
+            for label, call in NON_FINITE.items()]
+
+
+OTHER_CASES = [*cell_cases(), *logging_cases(), *non_finite_cases()]
+
+
 ENV = {"PYTHONPATH": str(REPO), "WANDB_MODE": "disabled", "HYDRA_FULL_ERROR": "0", "OMP_NUM_THREADS": "1"}
 """The environment of every case (one OpenMP thread: no thread pool exists when a file case is forked)."""
 
@@ -551,7 +668,7 @@ def run(argv: tuple[str, ...], tmp: str, timeout: float) -> tuple[int | None, st
         return None, out, time.perf_counter() - start
 
 
-PRELOAD = ("torch", "safetensors.torch", "umrl.checkpoints", "umrl.metatest", "umrl.runtime")
+PRELOAD = ("torch", "safetensors.torch", "umrl.checkpoints", "umrl.metatest", "umrl.loggers")
 """Imported once by the probe before the file cases, whose processes are forked from it (seconds each instead of
 the ~5 CPU-seconds every ``python -c`` spends importing torch and umrl)."""
 
@@ -649,13 +766,14 @@ def verdict(expect: str, returncode: int | None, output: str) -> tuple[str, str]
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--only", default="", help="run only the cases whose label contains this text")
-    parser.add_argument("--kinds", choices=("all", "old", "files"), default="all",
+    parser.add_argument("--kinds", choices=("all", "old", "files", "other"), default="all",
                         help="old: the first 40 cases; files: the file kinds (special, hostile, damaged, full disk, "
-                             "odd names)")
+                             "odd names); other: meta-test cells, logs and reports, non-finite values")
     parser.add_argument("--timeout", type=float, default=120.0, help="seconds per case (a case past it is obscure)")
     parser.add_argument("--jobs", type=int, default=1, help="cases run at once (each in its own folder)")
     args = parser.parse_args()
-    cases = {"all": [*CASES, *FILE_CASES], "old": CASES, "files": FILE_CASES}[args.kinds]
+    cases = {"all": [*CASES, *FILE_CASES, *OTHER_CASES], "old": CASES, "files": FILE_CASES,
+             "other": OTHER_CASES}[args.kinds]
     counts: Counter[tuple[str, str]] = Counter()
     with tempfile.TemporaryDirectory() as tmp:
         (Path(tmp) / "afile").write_text("not a directory")

@@ -27,7 +27,7 @@ import torch
 from tensordict import TensorDictBase
 
 from umrl.envs.registry import get_env_spec
-from umrl.validation import InvalidType, InvalidValue, check_finite, describe
+from umrl.validation import InvalidType, InvalidValue, check_finite, check_float, describe
 
 #: Seed of the held-out evaluation tasks; never used to draw meta-training tasks.
 EVAL_TASK_SEED = 20190531
@@ -140,7 +140,8 @@ def goal_distance_reward(next_td: TensorDictBase, action: torch.Tensor, task: to
 
 
 def goal_within(tolerance: float) -> SuccessFn:
-    """point_nav's success: every coordinate of ``"position"`` within ``tolerance`` of the goal."""
+    """point_nav's success: every coordinate of ``"position"`` within ``tolerance`` (> 0) of the goal."""
+    check_float("tolerance", tolerance, gt=0)
 
     def success(next_td: TensorDictBase, task: torch.Tensor) -> torch.Tensor:
         return ((next_td["position"] - task).abs() < tolerance).all(-1, keepdim=True)

@@ -16,7 +16,8 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-from umrl.runtime import Checkpointer, write_text_atomic
+from umrl.atomic_write import write_text_atomic
+from umrl.checkpoints.folder import Checkpointer
 
 KEY_LENGTH = 12
 """Hex digits of a :func:`config_key` (48 bits: a collision among a suite's runs is not a practical concern)."""

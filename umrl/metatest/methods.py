@@ -8,6 +8,7 @@
 """
 from __future__ import annotations
 
+import json
 import os
 import time
 from collections.abc import Callable, Mapping
@@ -18,6 +19,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
+from umrl.atomic_write import write_text_atomic
 from umrl.checkpoints import DIAYN_FORMAT, MAML_FORMAT, VIME_FORMAT, maml_policy, skill_policy, vime_policy
 from umrl.envs import get_env_spec
 from umrl.envs.tasks import get_task_family
@@ -32,11 +34,11 @@ from umrl.metatest.protocol import (
     sweep_tasks,
 )
 from umrl.metatest.provenance import relative_path
-from umrl.metatest.results import to_rows, write_rows
+from umrl.metatest.results import cell_finished, csv_text, text_sha256, to_rows
 from umrl.modules.policy import make_gaussian_policy
 from umrl.objectives.policy_gradient import episode_lengths, episode_mean
 from umrl.proposals import PROPOSALS
-from umrl.runtime import seed_everything
+from umrl.rng import seed_everything
 from umrl.validation import (
     DEVICES,
     InvalidType,
@@ -47,6 +49,7 @@ from umrl.validation import (
     check_list,
     check_positive,
     check_str,
+    check_writable_dir,
     resolve_device,
 )
 
@@ -158,7 +161,7 @@ class CellSpec:
         env: env name (:func:`umrl.envs.make_env`).
         seed: meta-test seed (>= 0): env sampling, scratch's initial weights, the sweep tasks.
         output: the cell's CSV path; a JSON of the same stem records lr, sweep scores, skills and timing.
-        checkpoint: the pre-training output (run dir or ``step_*.pt``); None only for scratch.
+        checkpoint: the pre-training output (run dir or ``step_*.safetensors``); None only for scratch.
         protocol: the adaptation protocol (:class:`AdaptationConfig`).
         num_tasks: held-out evaluation tasks (the family's first ``num_tasks`` eval tasks).
         adam_lr: REINFORCE + Adam learning rate when the sweep is off.
@@ -217,6 +220,21 @@ class CellSpec:
             values["sweep"] = SweepConfig(**values["sweep"])
         return cls(**values)
 
+    def settings(self) -> dict:
+        """What the cell's JSON records as its settings, and :meth:`finished` compares: every field but ``output``,
+        as plain JSON values, the checkpoint relative to ``output``'s folder (so results moved or committed together
+        with their runs still count as finished)."""
+        values = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "output"}
+        values.update(protocol=asdict(self.protocol), sweep=asdict(self.sweep), extra=dict(self.extra))
+        if self.checkpoint is not None:
+            values["checkpoint"] = relative_path(self.checkpoint, self.output)
+        return json.loads(json.dumps(values, default=str))
+
+    def finished(self) -> bool:
+        """Whether ``output`` holds this cell's finished result (:func:`~umrl.metatest.results.cell_finished`: a
+        stale file is named and removed, a folder there refused)."""
+        return cell_finished(self.output, self.settings())
+
     @property
     def lr_schedule(self) -> str:
         """The cell's step-size schedule: ``protocol.sgd_schedule`` for SGD methods, ``"constant"`` for Adam."""
@@ -234,13 +252,16 @@ def run_cell(spec: CellSpec) -> str:
     """Evaluate one (method, env, seed) cell and write its tidy CSV; the suite's unit of work.
 
     A JSON file beside the CSV records the learning rate used, the sweep scores, DIAYN-init's skills and timings.
-    Returns the CSV path; an existing CSV is left untouched (finished cells are never recomputed).
+    Returns the CSV path. A finished cell of the same settings (:meth:`CellSpec.finished`) is left untouched and not
+    recomputed; any other file at ``output`` is named in a warning and replaced, a folder there refused before any
+    work, as is an ``output`` in a folder this process cannot create or write.
     """
     if not isinstance(spec, CellSpec):
         raise TypeError(f"run_cell takes a CellSpec, got {type(spec).__name__}.")
     output = Path(spec.output)
-    if output.exists():
+    if spec.finished():
         return str(output)
+    check_writable_dir("output's folder", str(output.absolute().parent))
     device = torch.device(resolve_device("device", spec.device))
     start = time.perf_counter()
     config = spec.protocol
@@ -281,8 +302,9 @@ def run_cell(spec: CellSpec) -> str:
                 protocol=asdict(config), seconds=time.perf_counter() - start, mean_return=returns.mean(-1).tolist())
     rows = to_rows(returns, torch.stack(lengths), method=spec.method, env=spec.env, seed=spec.seed,
                    lr_schedule=spec.lr_schedule, **dict(spec.extra))
-    write_json_atomic(output.with_suffix(".json"), info)
-    write_rows(rows, output)  # last: the CSV's existence marks the cell finished
+    text = csv_text(rows)
+    write_json_atomic(output.with_suffix(".json"), {**info, "settings": spec.settings(), "csv_sha256": text_sha256(text)})
+    write_text_atomic(output, text)  # last: the CSV's existence marks the cell finished
     return str(output)
 
 

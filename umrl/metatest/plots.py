@@ -15,7 +15,7 @@ import matplotlib.ticker
 import numpy as np
 from matplotlib.figure import Figure
 
-from umrl.runtime import save_figure
+from umrl.figures import save_figure
 
 #: One colour per method, stable across figures (methods outside this map get matplotlib's cycle).
 METHOD_COLORS = {

@@ -40,9 +40,8 @@ from umrl.envs.tasks import get_task_family
 from umrl.metatest.stats import auc
 from umrl.objectives.policy_gradient import compute_advantages, episode_mean, episode_returns, vpg_loss
 from umrl.rollout import FunctionalPolicy, collect, collect_env_steps
-from umrl.runtime import check_finite
 from umrl.transforms.skill import SkillTransform
-from umrl.validation import check_choice, check_int, check_positive
+from umrl.validation import check_choice, check_int, check_not_diverged, check_positive, check_probability
 
 OPTIMIZERS = ("sgd", "adam")
 #: SGD step-size schedules at meta-test (see :func:`sgd_lr_factor`).
@@ -61,6 +60,7 @@ def sgd_lr_factor(schedule: str, step: int, later_factor: float = 0.5) -> float:
     """
     if schedule not in SGD_SCHEDULES:
         raise ValueError(f"sgd_schedule must be one of {list(SGD_SCHEDULES)}, got {schedule!r}.")
+    check_positive("later_factor", later_factor)
     if schedule == "constant" or step == 0:
         return 1.0
     return 0.5 if schedule == "reference" else later_factor
@@ -101,6 +101,8 @@ class AdaptationConfig:
         check_int("protocol.num_steps", self.num_steps, min=0)
         check_int("protocol.num_trajectories", self.num_trajectories, min=1)
         check_int("protocol.horizon", self.horizon, min=1)
+        check_probability("protocol.gamma", self.gamma)
+        check_probability("protocol.lmbda", self.lmbda)
         check_choice("protocol.sgd_schedule", self.sgd_schedule, SGD_SCHEDULES)
         check_positive("protocol.sgd_later_factor", self.sgd_later_factor)
         if self.env_steps is not None:
@@ -153,8 +155,7 @@ class TaskAdapter:
                  lr: float, config: AdaptationConfig = AdaptationConfig()):
         if optimizer not in OPTIMIZERS:
             raise ValueError(f"unknown optimizer {optimizer!r}; valid choices: {list(OPTIMIZERS)}.")
-        if not lr > 0:
-            raise ValueError(f"lr must be positive, got {lr}.")
+        check_positive("lr", lr)
         if env.batch_size.numel() != num_tasks * config.num_trajectories:
             raise ValueError(
                 f"env batch {tuple(env.batch_size)} != {num_tasks} tasks x {config.num_trajectories} trajectories."
@@ -187,7 +188,7 @@ class TaskAdapter:
                                    normalize=self.config.normalize_advantage)
         log_prob = self.functional.log_prob(self.params, batch)
         losses = vpg_loss(log_prob, batch)
-        check_finite({"loss_objective": losses}, "meta-test adaptation")
+        check_not_diverged({"loss_objective": losses}, "meta-test adaptation")
         self.optimizer.zero_grad()
         losses.sum().backward()
         self.optimizer.step()

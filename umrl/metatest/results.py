@@ -9,6 +9,7 @@ and curves group rows by *arm*: the method, suffixed by its schedule when that i
 from __future__ import annotations
 
 import csv
+import hashlib
 import io
 import json
 import math
@@ -16,14 +17,16 @@ import os
 import warnings
 from collections.abc import Collection, Iterable, Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
+from umrl.atomic_write import write_text_atomic
 from umrl.metatest.method_table import default_lr_schedule
 from umrl.metatest.plots import METHOD_COLORS, Curve
 from umrl.metatest.stats import auc, bootstrap_ci, summarize
-from umrl.runtime import write_text_atomic
+from umrl.validation import InvalidValue
 
 #: Columns of the tidy results table (``extra`` columns follow them; files written before ``length`` lack it).
 COLUMNS = ("method", "env", "seed", "task", "step", "return", "length", "lr_schedule")
@@ -77,12 +80,22 @@ def write_rows(rows: Sequence[Mapping], path: str | os.PathLike) -> Path:
         raise ValueError(f"no rows to write to {path}.")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(path, csv_text(rows))
+    return path
+
+
+def csv_text(rows: Sequence[Mapping]) -> str:
+    """The CSV :func:`write_rows` writes for ``rows`` (a header of every key of any row, in the order first seen)."""
     text = io.StringIO(newline="")
     writer = csv.DictWriter(text, fieldnames=list(dict.fromkeys(key for row in rows for key in row)))
     writer.writeheader()
     writer.writerows(rows)
-    write_text_atomic(path, text.getvalue())
-    return path
+    return text.getvalue()
+
+
+def text_sha256(text: str) -> str:
+    """The SHA-256 (hex) of ``text`` in UTF-8: what a cell's JSON records of its CSV (:func:`cell_finished`)."""
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
 def read_rows(paths: Iterable[str | os.PathLike]) -> list[dict]:
@@ -119,25 +132,64 @@ def _read_file(path: Path) -> list[dict]:
     return rows
 
 
-def cell_finished(path: str | os.PathLike) -> bool:
-    """Whether the cell CSV ``path`` (and the ``.json`` beside it, where there is one) holds a finished result.
+def cell_finished(path: str | os.PathLike, settings: Mapping) -> bool:
+    """Whether the cell CSV ``path`` holds the finished result of a cell of ``settings`` (a plain mapping, as
+    :meth:`umrl.metatest.CellSpec.settings` gives it).
 
-    An empty or corrupt cached file is named in a ``UserWarning`` and removed with its ``.json`` (False: the cell
-    runs again) instead of giving a partial table or failing later."""
+    It does when ``path`` is a regular file (a symlink to one counts) that reads as a results file, and the ``.json``
+    beside it is a JSON object recording these ``settings`` and the CSV's :func:`text_sha256` (``csv_sha256``). Any
+    other file there (written with other settings, by an older umrl, cut short or edited, unreadable) is named in one
+    ``UserWarning`` line, ``recomputing the cell <path>: <why>``, and removed with its ``.json`` (False: the cell runs
+    again). A folder or another special file at either path raises :class:`~umrl.validation.InvalidValue` naming
+    ``output``: it is not a result, and the cell could not write there.
+    """
     path = Path(path)
+    info_path = path.with_suffix(".json")
+    for file in (path, info_path):
+        if file.exists() and not file.is_file():
+            kind = "a folder" if file.is_dir() else "a special file (FIFO, socket or device)"
+            raise InvalidValue("output", str(path), "a path where the cell's CSV and the .json beside it are regular "
+                               "files or absent", note=f"{file} is {kind}")
     if not path.exists():
         return False
+    why = _stale_reason(path, info_path, settings)
+    if why is None:
+        return True
+    warnings.warn(f"recomputing the cell {path}: {why}", UserWarning, stacklevel=2)
+    path.unlink()
+    info_path.unlink(missing_ok=True)
+    return False
+
+
+def _stale_reason(path: Path, info_path: Path, settings: Mapping) -> str | None:
+    """Why the CSV ``path`` is no finished cell of ``settings`` (None when it is one)."""
+    if not info_path.exists():
+        return f"no {info_path.name} beside it"
     try:
-        _read_file(path)
-        info = path.with_suffix(".json")
-        if info.exists() and not isinstance(json.loads(info.read_text()), dict):
-            raise ValueError(f"{info} does not hold a JSON object")
-    except (ValueError, UnicodeDecodeError) as e:
-        warnings.warn(f"recomputing the cell: {e}", UserWarning, stacklevel=2)
-        path.unlink()
-        path.with_suffix(".json").unlink(missing_ok=True)
-        return False
-    return True
+        info = json.loads(info_path.read_text())
+        if not isinstance(info, dict):
+            return f"{info_path} does not hold a JSON object"
+        if "settings" not in info or "csv_sha256" not in info:
+            return f"{info_path} records no settings (written by an older umrl)"
+        changed = _differences(info["settings"], json.loads(json.dumps(settings, default=str)))
+        if changed:
+            return "written with other settings (" + "; ".join(changed[:3]) + ("; ..." if len(changed) > 3 else "") + ")"
+        with path.open(newline="") as f:  # the characters as written (the CSV's \r\n line ends kept)
+            text = f.read()
+        if text_sha256(text) != info["csv_sha256"]:
+            return f"the CSV is not the one its {info_path.name} records (cut short or edited)"
+        _read_file(path)  # a NaN return, say
+    except (OSError, ValueError, UnicodeDecodeError) as e:  # _read_file's errors name the file
+        return f"{info_path}: {e}" if isinstance(e, json.JSONDecodeError) else str(e)
+    return None
+
+
+def _differences(recorded: Any, wanted: Any, key: str = "") -> list[str]:
+    """``<key>: <recorded>, now <wanted>`` for each leaf where two JSON trees differ (dotted keys)."""
+    if isinstance(recorded, dict) and isinstance(wanted, dict):
+        return [line for k in dict.fromkeys([*recorded, *wanted])
+                for line in _differences(recorded.get(k), wanted.get(k), f"{key}.{k}" if key else k)]
+    return [] if recorded == wanted else [f"{key}: {recorded!r}, now {wanted!r}"]
 
 
 def run_matrix(rows: Iterable[Mapping], *, env: str, method: str, value: str = "return") -> np.ndarray:
@@ -190,7 +242,7 @@ def curves_from_rows(rows: Sequence[Mapping], *, methods: Sequence[str] | None =
 
 def summary_table(rows: Sequence[Mapping], *, steps: Sequence[int] = (0, 1, 5), methods: Sequence[str] | None = None,
                   confidence: float = 0.95) -> tuple[str, list[dict]]:
-    """Markdown table and records: return at ``k ∈ steps ∪ {K}`` and AUC per (env, arm).
+    """Markdown table and records: return at ``k ∈ steps ∪ {K}`` (steps above K left out) and AUC per (env, arm).
 
     Every cell is the IQM over (seed, task) runs with its bootstrap CI; the AUC is also given as a mean with CI.
     Where the env ends episodes early (the rows' ``length`` varies), a last column gives the mean episode length at
@@ -314,6 +366,8 @@ __all__ = [
     "arm_label",
     "arm_styles",
     "baseline_arms",
+    "cell_finished",
+    "csv_text",
     "curves_from_rows",
     "mean_curve",
     "pretraining_note",
@@ -321,6 +375,7 @@ __all__ = [
     "run_matrix",
     "suite_summary",
     "summary_table",
+    "text_sha256",
     "to_rows",
     "write_rows",
 ]

@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from umrl.envs import get_env_spec
+from umrl.configs.env_groups import env_defaults
 from umrl.metatest.results import arm_label, read_rows, run_matrix
 from umrl.metatest.stats import auc, bootstrap_ci
 
@@ -247,11 +247,10 @@ def _budget(cell_csv: Path, root: Path, env: str) -> tuple[str, str] | None:
     if not config.is_file():
         return None
     cfg = yaml.safe_load(config.read_text())
-    spec = get_env_spec(env)
     if "proposal" in cfg:
-        return "MAML", f"{cfg['iterations']} / {spec.maml_iterations}"
+        return "MAML", f"{cfg['iterations']} / {env_defaults('maml', env)['iterations']}"
     if "collector" in cfg:
-        return "DIAYN", f"{cfg['collector']['total_frames']} / {spec.diayn_frames}"
+        return "DIAYN", f"{cfg['collector']['total_frames']} / {env_defaults('diayn', env)['collector']['total_frames']}"
     return None
 
 
@@ -320,7 +319,7 @@ def plot_verdicts(verdicts: Sequence[ClaimVerdict], path: str | Path) -> Path:
     per part and one panel per env, coloured by the part's verdict; returns the PNG path."""
     from matplotlib.figure import Figure
 
-    from umrl.runtime import save_figure
+    from umrl.figures import save_figure
 
     panels: dict[str, list[tuple[int, Evidence]]] = {}
     for v in verdicts:

@@ -27,6 +27,8 @@ from torch.distributions import Normal, kl_divergence
 from torch.func import functional_call, grad, vmap
 from torchrl.envs.transforms.rnd import RunningMeanStd
 
+from umrl.validation import check_positive
+
 Noise = list[tuple[torch.Tensor, torch.Tensor]]
 
 
@@ -115,8 +117,10 @@ class BayesianDynamics(nn.Module):
         super().__init__()
         if obs_dim < 1 or act_dim < 1:
             raise ValueError(f"obs_dim and act_dim must be positive, got {obs_dim} and {act_dim}.")
-        if prior_std <= 0 or likelihood_std <= 0:
-            raise ValueError(f"prior_std and likelihood_std must be positive, got {prior_std}, {likelihood_std}.")
+        check_positive("prior_std", prior_std)
+        check_positive("likelihood_std", likelihood_std)
+        if init_std is not None:  # None: prior_std
+            check_positive("init_std", init_std)
         self.obs_dim, self.act_dim = obs_dim, act_dim
         self.prior_std = float(prior_std)
         self.likelihood_std = float(likelihood_std)

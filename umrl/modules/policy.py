@@ -23,6 +23,7 @@ from torch import nn
 from torchrl.modules import MLP, IndependentNormal, ProbabilisticActor
 
 from umrl.modules.batched_mlp import declare_batched_layers
+from umrl.validation import check_positive
 
 
 def make_gaussian_policy(
@@ -49,8 +50,7 @@ def make_gaussian_policy(
     """
     if obs_dim < 1 or act_dim < 1:
         raise ValueError(f"obs_dim and act_dim must be positive, got {obs_dim} and {act_dim}.")
-    if init_std <= 0:
-        raise ValueError(f"init_std must be positive, got {init_std}.")
+    check_positive("init_std", init_std)
     with torch.random.fork_rng(devices=[]) if seed is not None else contextlib.nullcontext():
         if seed is not None:
             torch.manual_seed(seed)

@@ -21,7 +21,7 @@ from torchrl.objectives.utils import ValueEstimators
 
 from umrl.modules.discriminator import discriminator_logits
 from umrl.transforms.discriminator_reward import check_skills, skill_reward
-from umrl.validation import check_keys
+from umrl.validation import check_float, check_keys, check_positive
 
 __all__ = ["DIAYNLoss", "DIAYNUpdate", "UpdateRunner", "check_capturable", "make_diayn_optimizers"]
 
@@ -130,8 +130,9 @@ class DIAYNLoss(LossModule):
     ):
         if num_skills < 2:
             raise ValueError(f"num_skills must be >= 2, got {num_skills}.")
-        if alpha_init <= 0:
-            raise ValueError(f"alpha_init must be positive, got {alpha_init}.")
+        check_positive("alpha_init", alpha_init)
+        if target_entropy != "auto":
+            check_float("target_entropy", target_entropy)
         super().__init__()
         self.num_skills = num_skills
         self.fixed_alpha = fixed_alpha
@@ -225,6 +226,7 @@ def make_diayn_optimizers(
     ``"alpha"`` is present only for a learned alpha (``fixed_alpha=False``). ``capturable=True`` keeps Adam's step
     counters on the parameters' device, which CUDA graphs need (:class:`DIAYNUpdate` with ``cudagraphs=True``).
     """
+    lr, discriminator_lr = check_positive("lr", lr), check_positive("discriminator_lr", discriminator_lr)
     sac = loss.sac_loss
     adam = {"capturable": capturable}
     optimizers = {
@@ -308,7 +310,7 @@ class DIAYNUpdate:
             _distribution_kwargs_to(loss.sac_loss.actor_network, device)  # held outside the module tree
         self.loss = loss
         self.optimizers = dict(optimizers)
-        self.target_updater = SoftUpdate(loss.sac_loss, tau=tau)
+        self.target_updater = SoftUpdate(loss.sac_loss, tau=check_float("tau", tau, ge=0, le=1))
         self.runner = UpdateRunner(self._step, compile=compile, cudagraphs=cudagraphs, device=device)
         self.compile_mode, self.cudagraphs = self.runner.compile_mode, cudagraphs
 

@@ -7,6 +7,7 @@ from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
 from umrl.modules.bnn import BayesianDynamics
+from umrl.validation import check_float
 
 __all__ = ["VIMEBonus"]
 
@@ -66,6 +67,7 @@ class VIMEBonus(Transform):
         intrinsic_key: str = "intrinsic_reward",
         info_gain_key: str = "info_gain",
     ):
+        check_float("eta", eta, ge=0)
         if eta < 0 or num_samples < 1 or median_window < 1:
             raise ValueError(
                 f"VIMEBonus needs eta >= 0, num_samples >= 1, median_window >= 1; got {eta}, {num_samples}, "
