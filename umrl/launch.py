@@ -8,6 +8,7 @@ suite (``benchmarks/suite.py``) schedules its pre-training runs and meta-test ce
 from __future__ import annotations
 
 import concurrent.futures as cf
+import functools
 import os
 import pickle
 import subprocess
@@ -21,15 +22,18 @@ from pathlib import Path
 from umrl.process import tuned_call
 
 __all__ = [
+    "FORWARDED_ENV",
     "InlineLauncher",
     "Job",
     "JobError",
     "LocalLauncher",
     "RayLauncher",
     "failure_message",
+    "forwarded_env",
     "log_tail",
     "make_launcher",
     "run_jobs",
+    "with_prelude",
 ]
 
 LOG_TAIL = 25
@@ -132,9 +136,9 @@ class _Worker:
         os.close(write)
         self.results = os.fdopen(read, "rb")
 
-    def run(self, job: Job, log: Path):
+    def run(self, fn: Callable, job: Job, log: Path):
         try:
-            pickle.dump((job.fn, job.args, job.kwargs, str(log)), self.process.stdin)
+            pickle.dump((fn, job.args, job.kwargs, str(log)), self.process.stdin)
             self.process.stdin.flush()
             ok, value = pickle.load(self.results)
         except (EOFError, BrokenPipeError, pickle.UnpicklingError) as err:
@@ -156,7 +160,8 @@ class _Worker:
 
 class LocalLauncher:
     """Up to ``workers`` jobs at once in worker processes: ``python`` subprocesses with ``threads`` torch/OpenMP
-    threads and working directory ``cwd``, each job's output appended to ``job.log``.
+    threads and working directory ``cwd``, each job's output appended to ``job.log``; ``prelude()`` runs in the
+    worker before each job (:func:`with_prelude`).
 
     A worker runs one job after another (imports paid once); a job with ``fresh=True`` (pre-training) gets a worker
     of its own, started for it and ended after it, as a separate run would. Jobs pickle by reference, so this is
@@ -164,8 +169,9 @@ class LocalLauncher:
     suite, and a worker that dies fails its job only. ``shutdown`` terminates running workers.
     """
 
-    def __init__(self, workers: int, *, threads: int = 1, cwd: str | os.PathLike = "."):
-        self.slots, self.cwd, self.threads = workers, Path(cwd), threads
+    def __init__(self, workers: int, *, threads: int = 1, cwd: str | os.PathLike = ".",
+                 prelude: Callable[[], object] | None = None):
+        self.slots, self.cwd, self.threads, self.prelude = workers, Path(cwd), threads, prelude
         self.env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads),
                     "PYTHONPATH": os.pathsep.join(filter(None, [str(SOURCE_ROOT), os.environ.get("PYTHONPATH")]))}
         self.pool = cf.ThreadPoolExecutor(max_workers=workers)
@@ -187,7 +193,7 @@ class LocalLauncher:
         with log.open("a") as out:
             out.write(f"==== {time.strftime('%Y-%m-%dT%H:%M:%S')} {job.key}: {job.what}\n")
         try:
-            return worker.run(job, log)
+            return worker.run(with_prelude(self.prelude, job.fn), job, log)
         finally:
             with self.lock:
                 self.busy.discard(worker)
@@ -209,35 +215,63 @@ class LocalLauncher:
         self.pool.shutdown(wait=True)
 
 
-class RayLauncher:
-    """Ray tasks of ``cpus_per_job`` CPUs; connects to ``address`` (``local``: start one here) unless Ray is up."""
+FORWARDED_ENV = ("WANDB_DIR",)
+"""Environment variables a Ray task gets from the driver as it is when the job is submitted (a local worker
+inherits the driver's whole environment): the suite's one wandb folder (:func:`umrl.loggers.wandb_dir_default`)."""
 
-    def __init__(self, address: str, cpus_per_job: float = 1.0):
+
+class RayLauncher:
+    """Ray tasks of ``cpus_per_job`` CPUs; connects to ``address`` (``local``: start one here) unless Ray is up.
+    Each task's ``runtime_env`` carries the driver's :data:`FORWARDED_ENV` (Ray merges them into the job's
+    ``env_vars``), whatever environment the Ray workers were started with; ``prelude()`` runs before each job
+    (:func:`with_prelude`)."""
+
+    def __init__(self, address: str, cpus_per_job: float = 1.0, prelude: Callable[[], object] | None = None):
         import ray
 
         if not ray.is_initialized():
             ray.init(address=None if address == "local" else address, include_dashboard=False)
-        self.ray, self.cpus = ray, cpus_per_job
+        self.ray, self.cpus, self.prelude = ray, cpus_per_job, prelude
         self.slots = max(1, int(ray.cluster_resources().get("CPU", 1) // cpus_per_job))
 
     def submit(self, job: Job) -> cf.Future:
         threads = max(1, int(self.cpus))  # each task tunes its worker process as the local launcher's workers do
-        return self.ray.remote(num_cpus=self.cpus)(tuned_call).remote(job.fn, threads, *job.args, **job.kwargs).future()
+        task = self.ray.remote(num_cpus=self.cpus, runtime_env={"env_vars": forwarded_env()})(tuned_call)
+        return task.remote(with_prelude(self.prelude, job.fn), threads, *job.args, **job.kwargs).future()
 
     def shutdown(self) -> None:  # the Ray instance belongs to whoever started it
         return None
 
 
-def make_launcher(launcher_cfg: Mapping, output_dir: str | os.PathLike = "."):
+def _after_prelude(prelude: Callable[[], object], fn: Callable, /, *args, **kwargs):
+    prelude()
+    return fn(*args, **kwargs)
+
+
+def with_prelude(prelude: Callable[[], object] | None, fn: Callable) -> Callable:
+    """``fn``, or with a ``prelude`` a function that calls ``prelude()`` and then ``fn`` with its arguments (a job
+    in a fresh process first does what the driver did before it planned the job, e.g. import the module that
+    registers a user's envs). Pickles by reference when both do."""
+    return fn if prelude is None else functools.partial(_after_prelude, prelude, fn)
+
+
+def forwarded_env() -> dict[str, str]:
+    """The :data:`FORWARDED_ENV` variables set in this process, with their values."""
+    return {name: os.environ[name] for name in FORWARDED_ENV if os.environ.get(name)}
+
+
+def make_launcher(launcher_cfg: Mapping, output_dir: str | os.PathLike = ".",
+                  prelude: Callable[[], object] | None = None):
     """``RayLauncher`` when ``ray_address`` is set, else ``LocalLauncher`` (``InlineLauncher`` for 0 workers) whose
-    workers run in ``output_dir`` (so nothing a job writes by accident lands in the caller's directory)."""
+    workers run in ``output_dir`` (so nothing a job writes by accident lands in the caller's directory). Their jobs
+    run after ``prelude()`` (:func:`with_prelude`; inline jobs run in the caller, where it already ran)."""
     if launcher_cfg.get("ray_address"):
-        return RayLauncher(str(launcher_cfg["ray_address"]), float(launcher_cfg.get("threads", 1)))
+        return RayLauncher(str(launcher_cfg["ray_address"]), float(launcher_cfg.get("threads", 1)), prelude)
     workers = int(launcher_cfg.get("workers", 2))
     if workers == 0:
         return InlineLauncher()
     Path(output_dir).mkdir(parents=True, exist_ok=True)
-    return LocalLauncher(workers, threads=int(launcher_cfg.get("threads", 1)), cwd=output_dir)
+    return LocalLauncher(workers, threads=int(launcher_cfg.get("threads", 1)), cwd=output_dir, prelude=prelude)
 
 
 def log_tail(path: Path | None, lines: int = LOG_TAIL) -> str:

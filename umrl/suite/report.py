@@ -7,13 +7,17 @@ from __future__ import annotations
 import json
 import shlex
 import sys
+import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from umrl.atomic_write import write_text_atomic
 from umrl.configs.suite import pretrain_seeds
+from umrl.loggers import close_logger, log_image, log_metrics, log_table, make_logger
 from umrl.metatest import (
+    Curve,
     ablation_curves,
     ablation_table,
     arm_label,
@@ -32,18 +36,9 @@ from umrl.metatest import (
     summary_table,
     write_rows,
 )
-from umrl.runtime import (
-    close_logger,
-    log_band,
-    log_image,
-    log_metrics,
-    log_table,
-    make_logger,
-    to_container,
-    write_text_atomic,
-)
+from umrl.plain_config import to_container
 
-__all__ = ["report", "summarize_timings"]
+__all__ = ["CURVE_COLUMNS", "report", "summarize_timings"]
 
 
 def report(cfg: DictConfig, group: str, timings: Mapping[str, float], cells: Sequence[Path],
@@ -98,43 +93,64 @@ def report(cfg: DictConfig, group: str, timings: Mapping[str, float], cells: Seq
     return markdown
 
 
+CURVE_COLUMNS = ["k", "env", "method", "iqm", "iqm_low", "iqm_high", "mean", "mean_low", "mean_high"]
+"""The columns of the meta-test curve tables: per adaptation step ``k`` of one (env, arm), the IQM over its (seed,
+task) runs and the mean (as in ``curves.png``), each with its 95% bootstrap CI."""
+
+
+def _curve_rows(rows: Sequence[Mapping], env: str, method: str, curve: Curve) -> list[list]:
+    """The :data:`CURVE_COLUMNS` rows of one (env, arm): IQMs and CIs from its results ``rows`` (the summary
+    table's, at every k), means and CIs from its ``curve`` (:func:`~umrl.metatest.curves_from_rows`')."""
+    per_k = run_matrix(rows, env=env, method=method).T  # [K + 1, runs]
+    table = []
+    for k, values in enumerate(per_k):
+        low, high = bootstrap_ci(values, iqm)
+        table.append([k, env, method, float(iqm(values)), float(low), float(high), float(curve.mean[k]),
+                      float(curve.low[k]), float(curve.high[k])])
+    return table
+
+
 def _log_to_wandb(cfg: DictConfig, group: str, curves, rows: Sequence[Mapping], records: Sequence[Mapping],
                   out: Path) -> None:
     """wandb runs in the suite's ``group``, each with the suite's whole config: one ``meta_test`` run per (env, arm)
     of ``curves`` (config also ``method``, ``env``) and one ``report`` run.
 
-    An arm's run holds its mean curve per k as scalars (``meta_test/return`` and its bootstrap CI
-    ``meta_test/return_low`` / ``_high``), the table ``meta_test/curve`` (``k``, ``iqm``, ``iqm_low``, ``iqm_high``
-    over its (seed, task) runs ``rows``) with its line plot ``meta_test/curve_plot``, the IQMs of ``records``
+    An arm's run holds its mean return per k as the scalar ``meta_test/return``, its curve with the 95% band as the
+    table ``meta_test/curve`` (:data:`CURVE_COLUMNS`, from its (seed, task) runs ``rows``) and as the image
+    ``meta_test/curve_band`` (its panel of ``curves.png``: the mean and its band), the IQMs of ``records``
     (:func:`~umrl.metatest.summary_table`'s) as ``summary/<metric>_iqm`` and its records as the table ``results``.
-    The report run holds every record (``results``) and the figures. Runs land in ``<out>/wandb`` (the suite sets
-    ``WANDB_DIR`` unless the user did)."""
+    The report run holds every record (``results``), every arm's curve rows (``meta_test/curves``) and the figures.
+    Runs land in ``<out>/wandb`` (the suite sets ``WANDB_DIR`` unless the user did)."""
     config = to_container(cfg)
     logger_cfg = {**config["logger"], "group": group}
     columns = list(dict.fromkeys(key for record in records for key in record))
+    styles = arm_styles(rows)
 
     def table(selected: Sequence[Mapping]) -> list[list]:
         return [[record.get(key) for key in columns] for record in selected]
 
-    for env, methods in curves.items():
-        for method, curve in methods.items():
-            logger = make_logger(logger_cfg, exp_name=f"{method}_{env}".replace(" ", "_"), job_type="meta_test",
-                                 config={**config, "method": method, "env": env}, log_dir=out)
-            for k, (m, lo, hi) in enumerate(zip(curve.mean, curve.low, curve.high)):
-                log_metrics(logger, {"meta_test/return": m, "meta_test/return_low": lo,
-                                     "meta_test/return_high": hi}, step=k)
-            mine = [r for r in records if r["env"] == env and r["method"] == method]
-            log_metrics(logger, {f"summary/{r['metric']}_iqm": r["iqm"] for r in mine}, step=len(curve.mean) - 1)
-            per_k = run_matrix(rows, env=env, method=method).T  # [K + 1, runs]
-            bands = [bootstrap_ci(values, iqm) for values in per_k]  # summary_table's IQM CIs, at every k
-            log_band(logger, "meta_test/curve", list(range(len(per_k))),
-                     {"iqm": [float(iqm(values)) for values in per_k], "iqm_low": [low for low, _ in bands],
-                      "iqm_high": [high for _, high in bands]},
-                     xname="k", title=f"{method} on {env}: return IQM and 95% CI after k adaptation steps")
-            log_table(logger, "results", columns, table(mine))
-            close_logger(logger)
+    every_curve = []
+    with tempfile.TemporaryDirectory() as figures:  # log_image gives each run its own copy of a figure
+        for env, methods in curves.items():
+            for method, curve in methods.items():
+                logger = make_logger(logger_cfg, exp_name=f"{method}_{env}".replace(" ", "_"), job_type="meta_test",
+                                     config={**config, "method": method, "env": env}, log_dir=out)
+                for k, mean in enumerate(curve.mean):
+                    log_metrics(logger, {"meta_test/return": mean}, step=k)
+                mine = [r for r in records if r["env"] == env and r["method"] == method]
+                log_metrics(logger, {f"summary/{r['metric']}_iqm": r["iqm"] for r in mine}, step=len(curve.mean) - 1)
+                arm_curve = _curve_rows(rows, env, method, curve)
+                every_curve += arm_curve
+                log_table(logger, "meta_test/curve", CURVE_COLUMNS, arm_curve)
+                if getattr(getattr(logger, "experiment", None), "disabled", True) is False:  # a wandb run that keeps it
+                    band = plot_adaptation_curves({env: {method: curve}}, Path(figures) / "band.png",
+                                                  styles={method: styles[method]})
+                    log_image(logger, "meta_test/curve_band", band, step=len(curve.mean) - 1)
+                log_table(logger, "results", columns, table(mine))
+                close_logger(logger)
     logger = make_logger(logger_cfg, exp_name="report", job_type="report", config=config, log_dir=out)
     log_table(logger, "results", columns, table(records))
+    log_table(logger, "meta_test/curves", CURVE_COLUMNS, every_curve)
     for name in ("curves", "ablation"):
         if (out / f"{name}.png").exists():
             log_image(logger, f"report/{name}", out / f"{name}.png", step=0)

@@ -3,6 +3,7 @@ killed suite left), ablate and report (:mod:`umrl.suite.report`).
 """
 from __future__ import annotations
 
+import functools
 import json
 import signal
 import threading
@@ -13,12 +14,14 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from umrl.atomic_write import write_text_atomic
 from umrl.configs import validate
 from umrl.configs.suite import SuiteConfig
+from umrl.envs.user_envs import import_env_module
 from umrl.folder_lock import lock_folder
 from umrl.launch import Job, make_launcher, run_jobs
+from umrl.loggers import wandb_dir_default
 from umrl.metatest.cache import remove_stale_tmp, source_version, write_json_atomic
-from umrl.runtime import wandb_dir_default, write_text_atomic
 from umrl.suite.plan import plan, plan_ablation, plan_pretraining
 from umrl.suite.report import report, summarize_timings
 
@@ -66,6 +69,16 @@ def code_version() -> str:
     return source_version([Path(umrl.__file__).parent])
 
 
+def _env_module_import(cfg: DictConfig) -> Callable[[], object] | None:
+    """What every job runs first when the config names an ``env_module`` (validation imported it in this process):
+    its import, a ``.py`` file by its absolute path (local workers run in ``output_dir``)."""
+    module = cfg.get("env_module")
+    if not module:
+        return None
+    return functools.partial(import_env_module, "env_module", str(Path(module).resolve()) if module.endswith(".py")
+                             else module)
+
+
 def _raise_on_sigterm(signum, frame):  # a `kill` stops the suite like Ctrl-C: running workers are terminated
     raise KeyboardInterrupt(f"signal {signum}")
 
@@ -94,7 +107,7 @@ def _run_suite(cfg: DictConfig, log: Callable[[str], None]) -> str:
     start = time.perf_counter()
     job_times: dict[str, float] = {}
     ablation: list[Job] = []
-    launcher = make_launcher(cfg.launcher, out)
+    launcher = make_launcher(cfg.launcher, out, prelude=_env_module_import(cfg))
     previous = signal.signal(signal.SIGTERM, _raise_on_sigterm) if threading.current_thread() is threading.main_thread() else None
     try:
         _, failed = run_jobs(jobs, launcher, log=log, timings=job_times)
