@@ -18,8 +18,8 @@ import json
 import os
 from pathlib import Path, PurePosixPath
 
+from umrl.atomic_write import write_text_atomic
 from umrl.metatest.provenance import relative_path
-from umrl.runtime import write_text_atomic
 
 REPO = Path(__file__).resolve().parents[1]
 FIELD = "checkpoint"

@@ -32,9 +32,9 @@ def tiny_diayn_checkpoint(tmp_path, request):
     in ``tmp_path / "diayn"``; returns ``(directory, discriminator)``. Parametrised indirectly, the parameter is the
     discriminator's ``input_dims`` (default ``None``: the whole observation)."""
     from umrl.checkpoints import DIAYN_FORMAT
+    from umrl.checkpoints.folder import Checkpointer
     from umrl.modules.discriminator import make_discriminator
     from umrl.modules.sac import make_skill_actor
-    from umrl.runtime import Checkpointer
 
     directory = tmp_path / "diayn"
     input_dims = getattr(request, "param", None)

@@ -10,6 +10,7 @@ from pathlib import Path
 from hydra import compose
 from omegaconf import DictConfig
 
+from umrl.configs.env_groups import with_env_group
 from umrl.trainers import config_dir
 
 REPO = Path(__file__).resolve().parents[1]
@@ -28,9 +29,10 @@ def load_script(relative_path: str):
 
 
 def compose_config(directory: str, name: str, overrides) -> DictConfig:
-    """Compose Hydra config ``name`` from ``REPO/directory`` with ``overrides``."""
+    """Compose Hydra config ``name`` from ``REPO/directory`` with ``overrides`` (a recipe's per-env defaults chosen
+    from ``env.name``, as :func:`umrl.trainers.compose` does)."""
     with config_dir(REPO / directory):
-        return compose(name, overrides=list(overrides))
+        return compose(name, overrides=with_env_group(name, overrides))
 
 
 def sigkill_after(script_args: list[str], checkpoint: Path, timeout: float = 120.0) -> None:

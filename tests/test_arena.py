@@ -68,7 +68,8 @@ def test_envs_without_the_option_refuse_it():
 
 
 def test_random_arena_proposal_is_random_in_a_bounded_arena():
-    kwargs = {"num_tasks": 2, "trajectories_per_task": 2, "seed": 3, "num_skills": 4, "horizon": 10}
+    kwargs = {"num_tasks": 2, "trajectories_per_task": 2, "seed": 3, "num_skills": 4, "horizon": 10,
+              "discriminator_hidden": [8]}
     plain, arena = make_proposal("random", "point_nav", **kwargs), make_proposal("random_arena", "point_nav", **kwargs)
     assert plain.env.base_env.arena is None and arena.env.base_env.arena == RANDOM_ARENA
     discriminators = [p.env.transform[-1] for p in (plain, arena)]

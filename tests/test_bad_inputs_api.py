@@ -192,7 +192,8 @@ def test_make_env_refuses_cuda_without_a_cuda_device(device):
 @no_cuda
 def test_make_proposal_refuses_cuda_without_a_cuda_device():
     with pytest.raises(InvalidValue, match=r"^device: got 'cuda' \(no CUDA device is available on this machine\)"):
-        make_proposal("random", "point_nav", num_tasks=2, trajectories_per_task=1, device="cuda")
+        make_proposal("random", "point_nav", num_tasks=2, trajectories_per_task=1, num_skills=2,
+                      discriminator_hidden=[8], device="cuda")
 
 
 def test_make_env_device_names():

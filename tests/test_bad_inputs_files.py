@@ -18,7 +18,8 @@ def test_the_file_kinds_hold_over_a_hundred_cases_of_every_kind():
     "CheckpointError: cannot read checkpoint /r/step_5.pt (a FIFO): not a regular file; give ...",
     "CheckpointError: cannot read checkpoint /r/step_1.pt (a MAML checkpoint): meta.inner_lr = nan; expected ...",
     "OSError: cannot write checkpoint /r/step_1.pt.tmp: No space left on device; free space ...",
-    "FileNotFoundError: no checkpoint file at /r (looked for step_*.pt in it and in /r/checkpoints).",
+    ("FileNotFoundError: no checkpoint file at /r (looked for step_*.safetensors and step_*.pt in it and in "
+     "/r/checkpoints)."),
 ])
 def test_a_checkpoint_error_is_a_clear_refusal(output):
     assert probe.verdict("refuse", 1, "Traceback\n" + output)[0] == "clear"

@@ -13,10 +13,11 @@ from test_resume import BUDGET, config
 from umrl import checkpoints
 from umrl.checkpoints import DIAYN_FORMAT, VIME_FORMAT
 from umrl.checkpoints.diayn import DIAYN_SEEDS_FORMAT
+from umrl.checkpoints.file import read_checkpoint
+from umrl.checkpoints.folder import Checkpointer
 from umrl.configs import ConfigError
 from umrl.envs import get_env_spec
 from umrl.metatest import CellSpec, run_cell
-from umrl.runtime import Checkpointer, read_checkpoint
 from umrl.suite import plan, plan_pretraining
 from umrl.validation import InvalidValue
 

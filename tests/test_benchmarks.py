@@ -83,7 +83,7 @@ def test_episode_lengths_replays_a_cell_with_its_own_episodes(tmp_path):
                     f"output_dir={maml}"], capture_output=True, text=True, timeout=300, check=True, cwd=REPO)
     out = subprocess.run([sys.executable, str(REPO / "scripts" / "diagnostics" / "episode_lengths.py"),
                           str(Path(cell).with_suffix(".json")), "--stand-still", "--maml-checkpoints",
-                          str(maml / "checkpoints" / "step_1.pt")],
+                          str(maml / "checkpoints" / "step_1.safetensors")],
                          capture_output=True, text=True, timeout=300, check=True, cwd=REPO).stdout
     rows = [line.split() for line in out.splitlines()[1:]]
     replayed = [r for r in rows if r[0] == "point_nav/scratch/seed3"]

@@ -98,7 +98,7 @@ def test_a_sweep_keeps_every_jobs_run(tmp_path):
                           f"output_dir={tmp_path / 'sweep'}"], capture_output=True, text=True, timeout=600, check=False)
     assert out.returncode == 0, out.stderr[-2000:]
     for lr in ("0.1", "0.5"):
-        assert (tmp_path / "sweep" / f"maml.inner_lr={lr}" / "checkpoints" / "step_1.pt").is_file()
+        assert (tmp_path / "sweep" / f"maml.inner_lr={lr}" / "checkpoints" / "step_1.safetensors").is_file()
     out = subprocess.run([sys.executable, "-m", "umrl", "maml", "-m", *common, "seed=0,1",
                           f"output_dir={tmp_path}/seeds/seed${{seed}}"], capture_output=True, text=True,
                          timeout=600, check=False)

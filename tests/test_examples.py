@@ -7,5 +7,5 @@ def test_meta_train_from_python_trains_checkpoints_and_meta_tests(tmp_path):
     example = load_script("examples/meta_train_from_python.py")
     curve = example.main(["--output", str(tmp_path / "maml"), "--iterations", "2", "--tasks", "2", "--steps", "1"])
     assert curve.shape == (2,) and torch.isfinite(curve).all()  # k = 0 and k = 1
-    assert sorted(p.name for p in (tmp_path / "maml" / "checkpoints").glob("step_*.pt")) == [
-        "step_0.pt", "step_1.pt", "step_2.pt"]
+    assert sorted(p.name for p in (tmp_path / "maml" / "checkpoints").glob("step_*")) == [
+        "step_0.safetensors", "step_1.safetensors", "step_2.safetensors"]

@@ -9,7 +9,7 @@ from umrl.envs import make_task_env
 from umrl.envs.mujoco import MUJOCO_BACKENDS, make_mujoco_env
 from umrl.envs.mujoco_batched import BATCHED_ENVS
 from umrl.envs.tasks import get_task_family
-from umrl.runtime import env_state, load_env_state
+from umrl.resume_state import env_state, load_env_state
 
 DIMS = {"half_cheetah": (17, 6), "ant": (105, 8)}
 PHYSICS = {
@@ -204,7 +204,7 @@ def test_reset_rng_state_round_trips_through_state_dict(name, act_dim):
 
 
 def test_gym_backend_reset_noise_round_trips_through_env_state():
-    """The reference backend's resume state: the gymnasium sub-envs' generators (``runtime.env_state``)."""
+    """The reference backend's resume state: the gymnasium sub-envs' generators (``umrl.resume_state.env_state``)."""
     env = make_mujoco_env("half_cheetah", 3, seed=11, backend="gym")
     _resets_and_steps(env, 1, 6)
     saved = env_state(env)

@@ -5,12 +5,13 @@ from script_loading import compose_config
 
 import umrl.trainers
 from umrl.checkpoints import DIAYN_FORMAT, MAML_FORMAT
+from umrl.checkpoints.folder import Checkpointer
 from umrl.configs import ConfigError, validate
 from umrl.configs.diayn import DIAYNConfig
 from umrl.configs.suite import SuiteConfig
 from umrl.envs import get_env_spec
+from umrl.loggers import make_logger
 from umrl.modules.policy import make_gaussian_policy
-from umrl.runtime import Checkpointer, make_logger
 
 TINY = ["num_tasks=2", "protocol.num_steps=1", "protocol.num_trajectories=2", "protocol.horizon=10", "report.steps=[0]",
         "logger.backend=none", "ablation.enabled=false", "seeds=[0]"]

@@ -122,7 +122,7 @@ def test_config_imports_env_module_before_checking_env_name(tmp_path):
     try:
         cfg = validate(diayn_config(f"env.module={module}", "env.name=gym:InvertedPendulum-v5",
                                     f"output_dir={tmp_path}/run"), DIAYNConfig)
-        assert cfg.env.name in ENV_NAMES and cfg.env.horizon == 100  # the spec's default diayn_horizon
+        assert cfg.env.name in ENV_NAMES and cfg.env.horizon == 100  # umrl/configs/diayn_env/default.yaml's
     finally:
         unregister_env("gym:InvertedPendulum-v5")
 
@@ -164,7 +164,7 @@ def test_own_env_example_runs_diayn_uml_and_meta_test_beside_scratch(tmp_path):
                               maml=["iterations=1", "meta_batch_size=2", "logger.backend=none"])
     assert sorted(returns) == ["scratch", "uml_diayn"]
     assert all(len(curve) == 2 and all(map(math.isfinite, curve)) for curve in returns.values())  # k = 0 and 1
-    assert (tmp_path / "maml" / "checkpoints" / "step_1.pt").is_file()
+    assert (tmp_path / "maml" / "checkpoints" / "step_1.safetensors").is_file()
 
 
 @pytest.mark.slow
@@ -181,7 +181,7 @@ def test_command_lines_train_diayn_then_maml_on_an_env_module(tmp_path):
         proc = subprocess.run([sys.executable, str(REPO / "recipes" / f"{recipe}.py"), *common, *overrides],
                               cwd=REPO, check=False, capture_output=True, text=True, timeout=300)
         assert proc.returncode == 0, proc.stderr[-2000:]
-    assert (tmp_path / "maml" / "checkpoints" / "step_1.pt").is_file()
+    assert (tmp_path / "maml" / "checkpoints" / "step_1.safetensors").is_file()
 
 
 @pytest.mark.parametrize("recipe", ["diayn", "maml"])
@@ -190,7 +190,7 @@ def test_resume_on_a_gym_env_is_bit_identical(tmp_path, pendulum, recipe):
     (the pendulum falls within a few steps, so the runs reset copies throughout)."""
     from test_resume import BUDGET, checkpoint_diffs, config
 
-    from umrl.runtime import read_checkpoint
+    from umrl.checkpoints.file import read_checkpoint
 
     train = importlib.import_module(f"umrl.trainers.{recipe}").train
     key, stop, end = BUDGET[recipe]

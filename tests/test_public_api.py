@@ -21,10 +21,11 @@ PUBLIC = {
 #: Lower layers never import higher ones (equal layers may import each other). Networks (modules) import no other
 #: umrl package: they sit beside the envs, below the transforms that hold them (VIMEBonus, DiscriminatorReward).
 LAYERS = {
-    "runtime": 0, "validation": 0, "trajectories": 0, "profiling": 0, "launch": 0, "heap": 0, "absent_modules": 0,
-    "process": 0, "checkpoint_file": 0, "seed_replay": 0, "folder_lock": 0, "signals": 0,
+    "rng": 0, "resume_state": 0, "loggers": 0, "figures": 0, "plain_config": 0, "atomic_write": 0, "validation": 0,
+    "trajectories": 0, "profiling": 0, "launch": 0, "heap": 0, "absent_modules": 0, "process": 0, "seed_replay": 0,
+    "folder_lock": 0, "signals": 0,
     "envs": 1, "modules": 1, "theory": 1, "transforms": 2, "rollout": 4, "objectives": 5, "optim": 5,
-    "proposals": 6, "skill_coverage": 6, "reward_map": 6, "checkpoints": 6, "metatest": 7, "configs": 7,
+    "proposals": 6, "skill_coverage": 6, "reward_map": 6, "checkpoints": 6, "metatest": 7, "configs": 7, "run_folders": 7,
     "trainers": 8, "suite": 9, "cli": 10, "__main__": 11,
 }
 

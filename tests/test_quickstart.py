@@ -21,4 +21,4 @@ def test_quickstart_trains_meta_trains_and_meta_tests_beside_scratch(tmp_path):
     assert sorted(returns) == ["scratch", "uml_diayn"]
     assert all(len(curve) == 2 and all(map(math.isfinite, curve)) for curve in returns.values())  # k = 0 and 1
     assert (tmp_path / "meta_test_uml_diayn.csv").is_file() and (tmp_path / "meta_test_scratch.csv").is_file()
-    assert (tmp_path / "maml" / "checkpoints" / "step_1.pt").is_file()
+    assert (tmp_path / "maml" / "checkpoints" / "step_1.safetensors").is_file()

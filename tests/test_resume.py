@@ -16,8 +16,9 @@ import torch
 from script_loading import REPO, sigkill_after
 from tensordict import TensorDictBase
 
+from umrl.checkpoints.file import read_checkpoint
+from umrl.checkpoints.folder import Checkpointer
 from umrl.configs import ConfigError
-from umrl.runtime import Checkpointer, read_checkpoint
 from umrl.trainers import compose
 from umrl.trainers.diayn import train as train_diayn
 
@@ -119,8 +120,8 @@ def test_sigkill_mid_iteration_then_resume_is_bit_identical(tmp_path):
     """A MAML run killed with SIGKILL while meta-training (after its 2nd checkpoint), resumed in-process."""
     overrides = ["logger.backend=none", "progress=false", "env.name=point_nav", *TINY["maml"], "iterations=6"]
     killed = tmp_path / "killed"
-    sigkill_after(["recipes/maml.py", *overrides, f"output_dir={killed}"], killed / "checkpoints" / "step_2.pt")
-    assert Checkpointer(killed / "checkpoints").latest().name != "step_6.pt"
+    sigkill_after(["recipes/maml.py", *overrides, f"output_dir={killed}"], killed / "checkpoints" / "step_2.safetensors")
+    assert Checkpointer(killed / "checkpoints").latest().name != "step_6.safetensors"
 
     from umrl.trainers.maml import train
 
@@ -173,9 +174,9 @@ def signal_at_step(trainer, signum: int, step: int) -> None:
     trainer.step = step_then_signal
 
 
-STOPS = {"diayn": ("collector.total_frames", 160, "checkpoint.every=40", "step_80.pt"),
-         "maml": ("iterations", 4, "checkpoint.every=100", "step_2.pt"),
-         "vime": ("iterations", 4, "checkpoint.every=100", "step_2.pt")}
+STOPS = {"diayn": ("collector.total_frames", 160, "checkpoint.every=40", "step_80.safetensors"),
+         "maml": ("iterations", 4, "checkpoint.every=100", "step_2.safetensors"),
+         "vime": ("iterations", 4, "checkpoint.every=100", "step_2.safetensors")}
 """(budget key, budget, checkpoint schedule, the checkpoint a stop during the 2nd step writes): MAML's and VIME's
 schedules save only at the start and the end, so their stop saves off schedule; DIAYN's episodes restart at every
 checkpoint, so its resume is exact when the stop falls on its schedule (here every batch)."""
@@ -216,7 +217,7 @@ def test_sigint_on_the_command_line_saves_and_ends_with_one_line(tmp_path):
                             stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 120
-        while not (tmp_path / "checkpoints" / "step_1.pt").exists() and proc.poll() is None:
+        while not (tmp_path / "checkpoints" / "step_1.safetensors").exists() and proc.poll() is None:
             assert time.monotonic() < deadline, "no first meta-iteration within 120 s"
             time.sleep(0.02)
         proc.send_signal(signal.SIGINT)  # train() runs: its handler is installed

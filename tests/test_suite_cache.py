@@ -85,7 +85,7 @@ def test_run_killed_after_its_last_checkpoint_counts_as_finished(tmp_path):
     cfg = _cfg(tmp_path, "methods=[diayn_init]", "skill_trajectories=1", *overrides)
     run = suite.plan_pretraining(validate(cfg, SuiteConfig), "g", suite.code_version())["diayn", "point_nav", 0]
     umrl.trainers.train("diayn", run.overrides)  # the run's own work, done outside the suite: no marker
-    checkpoint = run.run_dir / "checkpoints" / "step_120.pt"
+    checkpoint = run.run_dir / "checkpoints" / "step_120.safetensors"
     assert checkpoint.is_file() and not (run.run_dir / DONE_MARKER).exists()
     stamp = checkpoint.stat().st_mtime_ns
 

@@ -16,6 +16,7 @@ from umrl.validation import (
     check_int,
     check_list,
     check_mapping,
+    check_not_diverged,
     check_path_exists,
     check_positive,
     check_probability,
@@ -51,6 +52,13 @@ def test_check_probability():
     assert check_probability("gamma", 1) == 1.0 and check_probability("gamma", 0.0) == 0.0
     with pytest.raises(InvalidValue, match=r"^gamma: got 1\.5; expected a finite number in \[0, 1\]$"):
         check_probability("gamma", 1.5)
+
+
+def test_divergence_guard_names_every_non_finite_entry():
+    check_not_diverged({"loss_a": torch.tensor(1.0), "step": 3}, "ok")
+    bad = {"loss_a": torch.tensor(1.0), "loss_b": torch.tensor(float("nan")), "loss_c": torch.tensor([0.0, -math.inf])}
+    with pytest.raises(FloatingPointError, match=r"^non-finite \['loss_b', 'loss_c'\] in update 3: lower the learning"):
+        check_not_diverged(bad, "update 3")
 
 
 def test_check_finite_tensor_names_first_bad_entry():

@@ -49,8 +49,8 @@ def records(path: str | Path) -> list[Record]:
 @dataclass
 class OfflineRun:
     """What one offline run holds: its name, group and job type, config keys and values (JSON text), each logged
-    metric's values, the files of its logged tables (``{key: path under files/}``), and whether it was finished (its
-    exit record is written)."""
+    metric's values, the files of its logged tables and images (``{key: path under files/}``), and whether it was
+    finished (its exit record is written)."""
 
     path: Path
     name: str = ""
@@ -60,6 +60,7 @@ class OfflineRun:
     config: dict[str, str] = field(default_factory=dict)
     metrics: dict[str, list[str]] = field(default_factory=dict)
     tables: dict[str, str] = field(default_factory=dict)
+    images: dict[str, str] = field(default_factory=dict)
 
     @property
     def num_values(self) -> int:
@@ -97,7 +98,7 @@ def _parse_run(run_dir: Path, items: list[Record]) -> OfflineRun:
         elif kind == "exit":
             run.finished = True
         elif kind == "history":
-            media: dict[str, dict[str, str]] = {}  # a table is logged as nested items {key: {_type, path, ...}}
+            media: dict[str, dict[str, str]] = {}  # a table or image: nested items {key: {_type, path, ...}}
             for item in record.history.item:
                 if not item.key and len(item.nested_key) > 1:
                     media.setdefault("/".join(item.nested_key[:-1]), {})[item.nested_key[-1]] = item.value_json
@@ -105,8 +106,10 @@ def _parse_run(run_dir: Path, items: list[Record]) -> OfflineRun:
                 key = item.key or "/".join(item.nested_key)
                 if not key.startswith("_"):
                     run.metrics.setdefault(key, []).append(item.value_json)
-            run.tables.update({key: json.loads(fields["path"]) for key, fields in media.items()
-                               if json.loads(fields.get("_type", "null")) == "table-file"})
+            for key, fields in media.items():
+                kind = json.loads(fields.get("_type", "null"))
+                if kind in ("table-file", "image-file"):
+                    (run.tables if kind == "table-file" else run.images)[key] = json.loads(fields["path"])
     return run
 
 

@@ -22,8 +22,8 @@ from pathlib import Path
 import torch
 from tensordict.nn import TensorDictModuleBase
 
+from umrl.figures import save_figure
 from umrl.modules.discriminator import discriminator_logits
-from umrl.runtime import save_figure
 from umrl.transforms.discriminator_reward import skill_rewards
 
 __all__ = ["RewardMap", "plot_rays", "plot_territories", "pseudo_rewards", "reward_map", "reward_map_stats"]

@@ -28,8 +28,8 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from umrl.envs import get_env_spec
 from umrl.envs.threads import torch_threads_beside_physics
+from umrl.figures import save_figure
 from umrl.modules.discriminator import discriminator_logits
-from umrl.runtime import save_figure
 
 __all__ = [
     "convex_hull_area",

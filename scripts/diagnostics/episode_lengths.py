@@ -39,8 +39,8 @@ from umrl.metatest import AdaptationConfig, CellSpec, load_initialisation, meta_
 from umrl.metatest.protocol import make_eval_env
 from umrl.metatest.provenance import resolve_recorded_path
 from umrl.objectives.policy_gradient import episode_lengths, episode_returns
+from umrl.rng import seed_everything
 from umrl.rollout import collect
-from umrl.runtime import seed_everything
 from umrl.skill_coverage import final_states
 from umrl.trajectories import trajectory_mask
 
@@ -128,7 +128,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, nargs="*", default=None, help="adaptation steps to print (default: all)")
     parser.add_argument("--stand-still", action="store_true", help="add zero actions per env and seed")
     parser.add_argument("--maml-checkpoints", nargs="*", default=[],
-                        help="step_*.pt files of MAML runs: their policies at k = 0 on the cells' env, tasks and seed "
+                        help="step_*.safetensors files of MAML runs: their policies at k = 0 on the cells' env, tasks and seed "
                              "(e.g. along meta-training)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (the suite's cells use 1)")
     parser.add_argument("--device", default="cpu")

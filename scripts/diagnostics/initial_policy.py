@@ -51,7 +51,7 @@ def describe(method: str, checkpoint: str | None, env_name: str, *, seed: int, t
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--method", required=True, choices=sorted(METHODS))
-    parser.add_argument("--checkpoint", default=None, help="its pre-training run dir or step_*.pt (not for scratch)")
+    parser.add_argument("--checkpoint", default=None, help="its pre-training run dir or step_*.safetensors (not for scratch)")
     parser.add_argument("--env", default="point_nav")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--trajectories", type=int, default=40)

@@ -40,7 +40,7 @@ from umrl.modules import policy_log_std
 from umrl.objectives.maml import gaussian_kl
 from umrl.optim.meta_hvp import make_meta_hvp
 from umrl.process import tune_process
-from umrl.runtime import seed_everything
+from umrl.rng import seed_everything
 from umrl.trainers.maml import build, meta_batch, meta_step
 
 BATCH_SEED_OFFSET = 1000  # the batch's streams differ from the recipe's (seed_everything(seed)) but not between runs

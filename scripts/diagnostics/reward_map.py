@@ -20,6 +20,7 @@ from pathlib import Path
 import torch
 
 from umrl.checkpoints import load_discriminator
+from umrl.configs.env_groups import env_defaults
 from umrl.envs.point_nav import ACTION_SCALE
 from umrl.envs.registry import get_env_spec
 from umrl.modules.discriminator import DISCRIMINATOR_INITS, make_discriminator
@@ -33,10 +34,10 @@ COLUMNS = ("num_skills", "goal_square_range", "disc_range", "disc_min", "disc_ma
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--random-seeds", type=int, nargs="*", default=[0, 1, 2])
-    parser.add_argument("--diayn-checkpoint", nargs="*", default=[], help="DIAYN run dirs or step_*.pt files")
+    parser.add_argument("--diayn-checkpoint", nargs="*", default=[], help="DIAYN run dirs or step_*.safetensors files")
     parser.add_argument("--num-skills", type=int, default=None, help="random discriminators (default: the env's)")
     parser.add_argument("--hidden", type=int, nargs="+", default=None,
-                        help="random discriminators' widths (default: the env's EnvSpec.diayn_hidden, as UML-random)")
+                        help="random discriminators' widths (default: UML-random's, maml_env/point_nav.yaml)")
     parser.add_argument("--init", default="xavier", choices=DISCRIMINATOR_INITS, help="random discriminators' init")
     parser.add_argument("--radius", type=float, default=None, help="R (default: horizon x 0.1 = 10)")
     parser.add_argument("--resolution", type=int, default=201)
@@ -45,8 +46,9 @@ def main() -> None:
     spec = get_env_spec("point_nav")
     radius = args.radius or spec.horizon * ACTION_SCALE
     eval_goals = spec.eval_tasks()
-    num_skills = args.num_skills or spec.num_skills
-    hidden = args.hidden or spec.diayn_hidden
+    defaults = env_defaults("maml", "point_nav")  # UML-random's discriminator
+    num_skills = args.num_skills or defaults["default_num_skills"]
+    hidden = args.hidden or defaults["discriminator_hidden"]
     discriminators = {
         f"random_{args.init}_seed{seed}": make_discriminator(spec.obs_dim, num_skills, hidden=hidden, seed=seed,
                                                              init=args.init).eval().requires_grad_(False)

@@ -33,7 +33,7 @@ from umrl.metatest import AdaptationConfig
 from umrl.metatest.protocol import SGD_SCHEDULES, TaskAdapter, make_eval_env
 from umrl.modules import policy_log_std
 from umrl.objectives.policy_gradient import episode_lengths, episode_mean
-from umrl.runtime import seed_everything
+from umrl.rng import seed_everything
 
 HEADER = ("| schedule | batch | k | mean return ± s.e. | worst task | tasks < {collapse:g} | episodes per batch "
           "| episode length |\n|---|---|---|---|---|---|---|---|")

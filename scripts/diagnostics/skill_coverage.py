@@ -3,7 +3,7 @@
     python scripts/diagnostics/skill_coverage.py outputs/diayn/half_cheetah/seed0 --horizons 100 1000
     python scripts/diagnostics/skill_coverage.py run_a run_b --episodes 4 --seed 0 --out outputs/skill_coverage
 
-Each checkpoint (a run's output_dir, its ``checkpoints/`` folder or a ``step_*.pt``) is read with
+Each checkpoint (a run's output_dir, its ``checkpoints/`` folder or a ``step_*.safetensors``) is read with
 ``umrl.checkpoints.load_skill_policy`` / ``load_discriminator``. For every horizon, every skill is rolled out
 ``--episodes`` times (sampled actions, the env's reset noise seeded by ``--seed``) in a fresh env of the run's
 ``env``, as the recipe's own evaluation does, and a uniformly random policy is rolled out beside it. Printed per row:
@@ -20,8 +20,9 @@ from pathlib import Path
 import torch
 
 from umrl.checkpoints import load_diayn_checkpoint, load_discriminator, load_skill_policy
+from umrl.checkpoints.folder import resolve_checkpoint
 from umrl.envs import get_env_spec, make_env
-from umrl.runtime import resolve_checkpoint, seed_everything
+from umrl.rng import seed_everything
 from umrl.skill_coverage import coverage_metrics, evaluate_skills, plot_coverage, skill_centroids
 from umrl.transforms.skill import SkillTransform
 
@@ -40,7 +41,7 @@ def _ranges(points: torch.Tensor) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("checkpoints", nargs="+", help="DIAYN run dirs, checkpoints/ folders or step_*.pt files")
+    parser.add_argument("checkpoints", nargs="+", help="DIAYN run dirs, checkpoints/ folders or step_*.safetensors files")
     parser.add_argument("--horizons", type=int, nargs="+", default=[100])
     parser.add_argument("--episodes", type=int, default=4, help="rollouts per skill")
     parser.add_argument("--seed", type=int, default=0)

@@ -52,7 +52,7 @@ from umrl.metatest.protocol import TaskAdapter, make_eval_env
 from umrl.metatest.stats import iqm
 from umrl.objectives.policy_gradient import compute_advantages, episode_returns, vpg_loss
 from umrl.process import tune_process
-from umrl.runtime import seed_everything
+from umrl.rng import seed_everything
 
 
 def make_adapter(path: str, *, env_name: str, tasks: torch.Tensor, seed: int,
