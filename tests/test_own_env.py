@@ -64,6 +64,18 @@ def test_a_gym_env_becomes_a_reward_free_cmp_with_actions_in_unit_bounds(pendulu
     assert rollout["next", "done"][:, -1].all()  # the horizon ends the episodes
 
 
+def test_an_env_observing_float32_works_as_one_observing_float64():
+    """Classic control observes float32 (MuJoCo float64): both become float32 observations."""
+    family = TaskFamily("swing", 1, -1.0, 1.0, reward_fn=lambda next_td, action, task: next_td["torque"] - task)
+    spec = register_env(gym_env_spec("Pendulum-v1", family, {"torque": lambda env: [env.last_u or 0.0]},
+                                     coverage_key="torque", coverage_reduction="mean"))
+    try:
+        rollout = make_env(spec.name, 2, seed=0, horizon=3).rollout(3)
+        assert rollout["next", "observation"].dtype == torch.float32 and rollout["next", "observation"].shape == (2, 3, 3)
+    finally:
+        unregister_env(spec.name)
+
+
 def test_held_out_tasks_come_from_the_family_sampler_seeded():
     def sampler(n, generator):
         return torch.randint(0, 3, (n, 1), generator=generator).float() / 4  # speeds 0, 0.25, 0.5

@@ -59,6 +59,20 @@ def test_no_import_runs_up_the_layers():
     assert not upward, f"upward imports (layer, imported): {sorted(upward)}"
 
 
+def test_no_package_imports_itself_through_another():
+    """The package-level import graph has no cycle (equal layers may import each other, but never both ways)."""
+    graph = {}
+    for path in UMRL.rglob("*.py"):
+        parts = path.relative_to(UMRL).with_suffix("").parts
+        if parts != ("__init__",):
+            graph.setdefault(parts[0], set()).update(_umrl_imports(path) - {parts[0]})
+
+    def reaches(start, goal, seen):
+        return any(nxt == goal or (nxt not in seen and reaches(nxt, goal, seen | {nxt})) for nxt in graph.get(start, ()))
+
+    assert not [name for name in graph if reaches(name, name, {name})]
+
+
 def test_every_module_imports_first_in_a_fresh_process():
     """An import cycle shows only when its module is imported first (``umrl.rollout`` before ``umrl.objectives``
     once failed): import each module with no umrl module loaded, in one child process (torch stays loaded)."""

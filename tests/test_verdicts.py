@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from umrl.metatest import to_rows, write_rows
-from umrl.metatest.verdicts import (
+from umrl.suite.verdicts import (
     CLAIMS,
     GATES,
     Claim,

@@ -127,7 +127,9 @@ def make_gym_cmp(gym_id: str, num_envs: int, *, sources: Mapping[str, tuple[str,
                                  wrappers=wrappers, **dict(gym_kwargs or {}))
     env = GymnasiumVectorEnv(vec_env, device=device)
     env.set_info_dict_reader(InfoPhysicsReader(sources, num_envs, device))
-    env = TransformedEnv(env, Compose(DoubleToFloat(in_keys=["observation"]), EnvRewardToKey()))
+    observation_dtype = env.observation_spec["observation"].dtype
+    to_float = [DoubleToFloat(in_keys=["observation"])] if observation_dtype == torch.float64 else []
+    env = TransformedEnv(env, Compose(*to_float, EnvRewardToKey()))  # MuJoCo observes float64, classic control float32
     if seed is not None:
         env.set_seed(seed)
     return env

@@ -9,8 +9,6 @@ module             job
 ``methods``        :func:`load_initialisation`, the typed :class:`CellSpec` and :func:`run_cell`
 ``results``        tidy rows / CSV, curves, the summary and ablation tables, the suite's ``summary.md``
 ``stats``          AUC, IQM, bootstrap confidence intervals
-``verdicts``       the verdict rule: paired cells → agrees / partly / disagrees / undecided per claim and env
-                   (a command, imported on its own: ``python -m umrl.metatest.verdicts results/``)
 ``plots``          adaptation-curve and ablation figures
 ``provenance``     commit, command and hardware of a run
 =================  ===========================================================================================

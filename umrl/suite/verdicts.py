@@ -25,7 +25,7 @@ variance: every verdict is printed with its seeds, and a one-seed verdict says l
 
 Command (every table from the committed cells, no compute)::
 
-    python -m umrl.metatest.verdicts results/
+    python -m umrl.suite.verdicts results/
 
 Cells are the suite's per-cell CSV files as ``results/README.md`` keeps them,
 ``<root>/<env>/meta_test_ref/seed<s>/<method>[.<schedule>].csv``, each with its ``.json`` beside it (which names the
