@@ -166,3 +166,17 @@ def test_resume_into_a_named_folder_names_the_step_it_continues_from(tmp_path, c
     callback.on_run_start(config=recipe_config(folder, [f"output_dir={folder}", "resume=true"], resume=True))
     callback.on_run_end(config=None)
     assert capsys.readouterr().out == f"resume=true: continuing the run in {folder} from step 30\n"
+
+
+def test_the_python_path_keeps_an_earlier_run_as_the_command_line_does(tmp_path, monkeypatch, capsys):
+    import umrl.trainers
+
+    monkeypatch.chdir(tmp_path)  # the default output_dir is relative to the working folder
+    overrides = ["+profile=maml_tiny", "iterations=1", "logger.backend=none", "progress=false"]
+    first = umrl.trainers.train("maml", overrides)
+    second = umrl.trainers.train("maml", overrides)
+    first_dir, second_dir = (os.path.dirname(os.path.dirname(r["checkpoint"])) for r in (first, second))
+    assert second_dir == first_dir + "-2" and os.path.isfile(first["checkpoint"])  # the first run is kept
+    assert f"this run writes to {second_dir}" in capsys.readouterr().out
+    resumed = umrl.trainers.train("maml", [*overrides, "iterations=2", "resume=true"])
+    assert os.path.dirname(os.path.dirname(resumed["checkpoint"])) == second_dir  # the latest run continues

@@ -13,7 +13,7 @@ seed's ``seed<s>/checkpoints/``).
 An ``output_dir`` (or ``diayn_checkpoint``) the command line names is used as it is: a fresh run into a folder
 holding checkpoints is refused (:func:`umrl.folder_lock.claim_run_folder`). The command lines apply this
 (:class:`umrl.configs.callbacks.OutputDirCheck` for a run, :func:`umrl.cli.recipe.sweep_job_folder` for each
-``-m`` job); the Python API (``umrl.trainers.train``, the trainers) takes ``output_dir`` as given.
+``-m`` job) and :func:`umrl.trainers.train` apply this; the trainer classes take ``output_dir`` as given.
 """
 from __future__ import annotations
 

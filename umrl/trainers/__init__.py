@@ -32,6 +32,10 @@ from __future__ import annotations
 import importlib
 from collections.abc import Sequence
 
+from omegaconf import read_write
+
+from umrl.folder_lock import reserve_folder
+from umrl.run_folders import named_keys, place_default_run
 from umrl.trainers.config import CONFIG_DIR, RECIPES, check_name, compose, config_dir
 from umrl.trainers.diayn import DIAYNTrainer
 from umrl.trainers.maml import MAMLTrainer
@@ -42,6 +46,21 @@ __all__ = ["CONFIG_DIR", "RECIPES", "DIAYNTrainer", "MAMLTrainer", "VIMETrainer"
 
 def train(name: str, overrides: Sequence[str] = ()) -> dict:
     """Run trainer ``name`` in this process on ``compose(name, overrides)``: ``umrl.trainers.<name>.train(cfg)``
-    (the final metrics and the ``"checkpoint"`` path). Pickles by reference: the suite's pre-training job."""
+    (the final metrics and the ``"checkpoint"`` path). Pickles by reference: the suite's pre-training job.
+
+    As on the command line, ``overrides`` that leave ``output_dir`` at its default put a rerun in a folder of its own
+    (``<folder>-2``, ...; :mod:`umrl.run_folders`, with the line saying so printed) and ``resume=true`` continues the
+    latest run; a named ``output_dir`` is used as it is."""
     check_name(name)
-    return importlib.import_module(f"umrl.trainers.{name}").train(compose(name, overrides))
+    cfg = compose(name, overrides)
+    with read_write(cfg):
+        lock, notes = place_default_run(cfg, named_keys(overrides))
+    for note in notes:
+        print(note, flush=True)
+    try:
+        if lock is not None:
+            reserve_folder(lock)  # the trainer takes this lock over
+        return importlib.import_module(f"umrl.trainers.{name}").train(cfg)
+    finally:
+        if lock is not None:
+            lock.release()
