@@ -134,3 +134,16 @@ def test_diayn_load_state_dict_continues_the_run_bit_for_bit(tmp_path):
         assert torch.equal(value, second.loss.state_dict()[key]), key
     continued.close()
     second.close()
+
+
+def test_diayn_steps_run_their_collect_and_update_phases(tmp_path):
+    trainer = DIAYNTrainer(compose("diayn", [*DIAYN_TINY, "collector.total_frames=16",
+                                             f"output_dir={tmp_path}"]))
+    phases = []
+    trainer.register_op("pre_phase", lambda t, name: phases.append(("pre", name)))
+    trainer.register_op("post_phase", lambda t, name: phases.append(("post", name)))
+    for _ in range(3):  # 4 frames each: updates start once the replay holds the warm-up's 8
+        trainer.step()
+    trainer.close()
+    collect, update = [("pre", "collect"), ("post", "collect")], [("pre", "update"), ("post", "update")]
+    assert phases == collect + (collect + update) * 2

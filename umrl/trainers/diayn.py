@@ -154,6 +154,7 @@ class DIAYNTrainer(Trainer):
     """
 
     name = "diayn"
+    PHASES = ("collect", "update")
     stop_message = "at {progress} of {budget} frames per seed"
     progress_unit = "frames"
 
@@ -387,8 +388,9 @@ class DIAYNTrainer(Trainer):
         (every ``log_every`` frames); an empty dict between them."""
         counters, settings = self.counters, self.settings
         collect_start = time.perf_counter()
-        data = self._collect(settings["steps"])
-        self.replay.extend(data)
+        with self.phase("collect"):
+            data = self._collect(settings["steps"])
+            self.replay.extend(data)
         self._interval["collect_s"] += time.perf_counter() - collect_start
         counters["frames"] += data.shape[0]
         self._interval["frames"] += data.shape[0]
@@ -396,10 +398,11 @@ class DIAYNTrainer(Trainer):
         if len(self.replay) >= self.warmup:
             update_start = time.perf_counter()
             counters["update_credit"] += data.shape[0] * settings["updates_per_frame"]
-            for _ in range(int(counters["update_credit"])):
-                out = self.update(self.replay.sample())
-                self._interval["sums"] = out if self._interval["sums"] is None else self._interval["sums"] + out
-                self._interval["updates"] += 1
+            with self.phase("update"):
+                for _ in range(int(counters["update_credit"])):
+                    out = self.update(self.replay.sample())
+                    self._interval["sums"] = out if self._interval["sums"] is None else self._interval["sums"] + out
+                    self._interval["updates"] += 1
             counters["updates"] += int(counters["update_credit"])
             counters["update_credit"] -= int(counters["update_credit"])
             self._interval["update_s"] += time.perf_counter() - update_start
