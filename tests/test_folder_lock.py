@@ -1,10 +1,10 @@
 """The folder lock (umrl.folder_lock): never held twice, even by two processes starting at the same instant; a refusal
 names the holder; a killed holder frees it; a lock file that is not a regular file is refused by name."""
-import multiprocessing
 import os
 import signal
 
 import pytest
+from racing import FORK, run_racers
 
 from umrl.folder_lock import LOCK_NAME, FolderInUse, FolderLock, lock_folder, reserve_folder
 from umrl.validation import InvalidValue
@@ -35,14 +35,8 @@ def test_two_processes_started_together_never_both_hold_the_lock(tmp_path):
     for folder in folders[1::2]:
         folder.mkdir()
         (folder / LOCK_NAME).write_text("pid 999999 on elsewhere since 2020-01-01T00:00:00\n")
-    context = multiprocessing.get_context("fork")  # the racers touch os and fcntl only
-    start, attempted, wins = context.Barrier(2), context.Barrier(2), context.Array("i", TRIALS)
-    racers = [context.Process(target=_race, args=(folders, start, attempted, wins)) for _ in range(2)]
-    for racer in racers:
-        racer.start()
-    for racer in racers:
-        racer.join(timeout=60)
-    assert [racer.exitcode for racer in racers] == [0, 0]
+    start, attempted, wins = FORK.Barrier(2), FORK.Barrier(2), FORK.Array("i", TRIALS)
+    run_racers(_race, [(folders, start, attempted, wins)] * 2)
     assert list(wins) == [1] * TRIALS  # one holder per trial: never both, never neither
 
 
@@ -58,15 +52,14 @@ def test_a_second_holder_is_refused_naming_the_first(tmp_path):
 
 
 def test_another_process_is_named_and_its_death_frees_the_lock(tmp_path):
-    context = multiprocessing.get_context("fork")
-    held = context.Event()
+    held = FORK.Event()
 
     def hold():
         FolderLock(tmp_path).acquire()
         held.set()
         signal.pause()
 
-    holder = context.Process(target=hold)
+    holder = FORK.Process(target=hold)
     holder.start()
     try:
         assert held.wait(timeout=30)

@@ -1,13 +1,13 @@
 """A rerun with the default output_dir gets a folder of its own (umrl.run_folders): ``seed0``, then ``seed0-2``, ...;
 two runs started at once never pick the same folder; resume=true continues the latest run and names it; an
 output_dir the command line names keeps the refusal; MAML's default diayn_checkpoint follows the latest DIAYN run."""
-import multiprocessing
 import os
 import subprocess
 import sys
 
 import pytest
 from omegaconf import OmegaConf
+from racing import FORK, run_racers
 from script_loading import REPO
 
 from umrl.configs.callbacks import OutputDirCheck
@@ -76,14 +76,8 @@ def _race(bases, start, picked, racer):
 
 def test_two_runs_started_at_once_pick_different_folders(tmp_path):
     bases = [earlier_run(tmp_path / f"trial{i}" / "seed0") for i in range(TRIALS)]
-    context = multiprocessing.get_context("fork")  # the racers touch os, fcntl and pathlib only
-    start, picked = context.Barrier(2), context.Array("i", 2 * TRIALS)
-    racers = [context.Process(target=_race, args=(bases, start, picked, i)) for i in range(2)]
-    for racer in racers:
-        racer.start()
-    for racer in racers:
-        racer.join(timeout=60)
-    assert [racer.exitcode for racer in racers] == [0, 0]
+    start, picked = FORK.Barrier(2), FORK.Array("i", 2 * TRIALS)
+    run_racers(_race, [(bases, start, picked, i) for i in range(2)])
     assert [sorted(picked[2 * t:2 * t + 2]) for t in range(TRIALS)] == [[2, 3]] * TRIALS
 
 
