@@ -55,13 +55,18 @@ def _snippets(text: str) -> list[str]:
     return blocks + [span for span in spans if " " in span and span.split(" ", 1)[0] in (*PROGRAMS, "for")]
 
 
-def _alternatives(line: str) -> list[str]:
-    """A synopsis's ``a|b|c`` (no spaces: not a pipe) spelled out: one line per choice, every combination."""
-    match = re.search(r"[\w.-]+(?:\|[\w.-]+)+", line)
+def spell_out(text: str, pattern: str, separator: str) -> list[str]:
+    """Every spelling of ``text`` with each match of ``pattern`` replaced by one of its choices (the match's last
+    group, or the whole match, split at ``separator``): every combination."""
+    match = re.search(pattern, text)
     if not match:
-        return [line]
-    return [variant for choice in match.group(0).split("|")
-            for variant in _alternatives(line[:match.start()] + choice + line[match.end():])]
+        return [text]
+    return [variant for choice in match.group(match.lastindex or 0).split(separator)
+            for variant in spell_out(text[:match.start()] + choice + text[match.end():], pattern, separator)]
+
+
+SYNOPSIS_CHOICES = r"[\w.-]+(?:\|[\w.-]+)+"
+"""A synopsis's ``a|b|c`` (no spaces: not a pipe)."""
 
 
 def _logical_lines(snippet: str) -> list[str]:
@@ -134,6 +139,6 @@ def doc_commands() -> list[DocCommand]:
             for line in _logical_lines(snippet):
                 if not re.search(rf"(?:^|[\s;&(])(?:{'|'.join(PROGRAMS)})\s", line + " "):
                     continue
-                for variant in _alternatives(_substitute(line, values)):
+                for variant in spell_out(_substitute(line, values), SYNOPSIS_CHOICES, "|"):
                     found += [DocCommand(page, line, tuple(words)) for words in _commands(variant)]
     return found

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from doc_commands import REPO, DocCommand, doc_commands
+from doc_commands import REPO, DocCommand, doc_commands, spell_out
 from hydra import compose as hydra_compose
 from hydra.core.override_parser.overrides_parser import OverridesParser
 
@@ -197,16 +197,8 @@ def _paths(args: list[str]) -> list[str]:
     for arg in args:
         for path in re.findall(r"(?:^|[=@])((?:results|outputs|docs|examples|tests|/tmp)/[^\s\"']*|results$)", arg):
             path = re.sub(r":[a-z]+$", "", path.replace("{seed}", "*"))  # per-seed template, `PATH:init` suffix
-            found += _expand_braces(path)
+            found += spell_out(path, r"\{([^{}]*,[^{}]*)\}", ",")  # shell braces
     return found
-
-
-def _expand_braces(word: str) -> list[str]:
-    match = re.search(r"\{([^{}]*,[^{}]*)\}", word)
-    if not match:
-        return [word]
-    return [w for part in match.group(1).split(",")
-            for w in _expand_braces(word[:match.start()] + part + word[match.end():])]
 
 
 def _missing(paths: list[str]) -> list[str]:
