@@ -1,5 +1,7 @@
 """The suite runs a user's env: ``env_module`` is imported before ``envs`` is checked and by every job (pre-training,
 meta-training, meta-test cells), in local workers as in Ray tasks (test_ray_env.py)."""
+import json
+import json.decoder
 from pathlib import Path
 
 import pytest
@@ -7,8 +9,9 @@ from script_loading import compose_config
 
 from umrl.configs import ConfigError, validate
 from umrl.configs.suite import SuiteConfig
+from umrl.envs.user_envs import env_module_source
 from umrl.metatest import read_rows
-from umrl.suite import plan, run_suite
+from umrl.suite import code_version, plan, run_suite
 
 ENV_MODULE = Path(__file__).resolve().parent / "pendulum_env.py"
 ENV = "gym:InvertedPendulum-v5"
@@ -46,3 +49,16 @@ def test_each_seed_of_a_gymnasium_env_gets_its_own_diayn_program(tmp_path):
     jobs = [job for job in plan(cfg, group="g", code="code") if job.key.startswith("pretrain/")]
     assert [job.key for job in jobs] == [f"pretrain/diayn/{ENV}/seed0", f"pretrain/diayn/{ENV}/seed1"]
     assert [[a for a in job.args[1] if a.startswith("seeds=")] for job in jobs] == [["seeds=[0]"], ["seeds=[1]"]]
+
+
+def test_the_code_version_covers_the_users_env_module(tmp_path):
+    module = tmp_path / "my_env.py"
+    module.write_text(ENV_MODULE.read_text())
+    plain, with_module = code_version(), code_version(str(module))
+    assert with_module != plain
+    module.write_text(ENV_MODULE.read_text() + "\n# a changed reward would change every result on this env\n")
+    assert code_version(str(module)) not in (plain, with_module)
+    assert env_module_source("json") == Path(json.__file__).parent  # a package: its folder
+    assert env_module_source("json.decoder") == Path(json.decoder.__file__)
+    with pytest.raises(ValueError, match="env_module: got .no_such_module_here."):
+        env_module_source("no_such_module_here")

@@ -17,7 +17,7 @@ from typing import Any
 from umrl.envs.registry import ENV_NAMES
 from umrl.validation import InvalidValue, check_str
 
-__all__ = ["check_env_name", "import_env_module"]
+__all__ = ["check_env_name", "env_module_source", "import_env_module"]
 
 _FILE_MODULES: dict[Path, ModuleType] = {}
 """Modules imported from a file path, by resolved path: a second config naming the same file imports it once."""
@@ -46,6 +46,19 @@ def import_env_module(name: str, value: Any) -> str:
     except Exception as e:
         raise InvalidValue(name, value, expected, note=f"importing it raised {type(e).__name__}: {e}") from e
     return value
+
+
+def env_module_source(value: str) -> Path:
+    """Where the source of ``value`` (as :func:`import_env_module` takes it) lives: the ``.py`` file itself, a
+    dotted module's file, or its package's folder when it names a package (the code a result made on its envs ran
+    with, for cache keys)."""
+    if value.endswith(".py"):
+        return Path(value).resolve()
+    spec = importlib.util.find_spec(value)
+    if spec is None or spec.origin is None:
+        raise InvalidValue("env_module", value, "an importable module with a source file")
+    origin = Path(spec.origin)
+    return origin.parent if spec.submodule_search_locations else origin
 
 
 def check_env_name(name: str, value: Any) -> str:

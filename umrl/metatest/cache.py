@@ -39,16 +39,20 @@ nothing."""
 
 
 def source_version(roots: Iterable[str | os.PathLike], exclude: Iterable[str] = REPORT_ONLY) -> str:
-    """A :data:`KEY_LENGTH`-digit hash of every ``*.py`` and ``*.yaml`` file under ``roots`` (relative path and
-    bytes, in sorted order) but those named in ``exclude`` (``<root folder name>/<path in it>``): the code a result
-    ran with. Works without git and sees uncommitted edits."""
+    """A :data:`KEY_LENGTH`-digit hash of every ``*.py`` and ``*.yaml`` file under ``roots`` (folders, or single
+    files hashed under their own name; relative path and bytes, in sorted order) but those named in ``exclude``
+    (``<root folder name>/<path in it>``): the code a result ran with. Works without git and sees uncommitted
+    edits."""
     digest, skip = hashlib.sha256(), set(exclude)
     for root in map(Path, roots):
-        if not root.is_dir():
-            raise FileNotFoundError(f"source_version: {root} is not a directory.")
-        files = sorted(p for p in root.rglob("*") if p.suffix in SOURCE_SUFFIXES and "__pycache__" not in p.parts)
-        for path in files:
-            name = f"{root.name}/{path.relative_to(root).as_posix()}"
+        if root.is_file():
+            files, names = [root], [root.name]
+        elif root.is_dir():
+            files = sorted(p for p in root.rglob("*") if p.suffix in SOURCE_SUFFIXES and "__pycache__" not in p.parts)
+            names = [f"{root.name}/{path.relative_to(root).as_posix()}" for path in files]
+        else:
+            raise FileNotFoundError(f"source_version: {root} is neither a file nor a directory.")
+        for path, name in zip(files, names):
             if name in skip:
                 continue
             digest.update(f"{name}\0".encode())

@@ -17,7 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 from umrl.atomic_write import write_text_atomic
 from umrl.configs import validate
 from umrl.configs.suite import SuiteConfig
-from umrl.envs.user_envs import import_env_module
+from umrl.envs.user_envs import env_module_source, import_env_module
 from umrl.folder_lock import lock_folder
 from umrl.launch import Job, make_launcher, run_jobs
 from umrl.loggers import wandb_dir_default
@@ -62,11 +62,13 @@ def suite_group(cfg: DictConfig) -> str:
     return group
 
 
-def code_version() -> str:
-    """The hash of the sources every result depends on (``umrl/``, the trainers' configs included)."""
+def code_version(env_module: str | None = None) -> str:
+    """The hash of the sources every result depends on: ``umrl/`` (the trainers' configs included) and, when the
+    config names an ``env_module``, that module's source (:func:`~umrl.envs.user_envs.env_module_source`): an edit
+    to a user's env recomputes what ran on it."""
     import umrl
 
-    return source_version([Path(umrl.__file__).parent])
+    return source_version([Path(umrl.__file__).parent, *([env_module_source(env_module)] if env_module else [])])
 
 
 def _env_module_import(cfg: DictConfig) -> Callable[[], object] | None:
@@ -97,7 +99,7 @@ def run_suite(cfg: DictConfig, *, log: Callable[[str], None] = print) -> str:
 
 def _run_suite(cfg: DictConfig, log: Callable[[str], None]) -> str:
     out = Path(cfg.output_dir).absolute()
-    code = code_version()
+    code = code_version(cfg.get("env_module"))
     group = suite_group(cfg)
     runs = plan_pretraining(cfg, group, code)
     jobs = plan(cfg, group, code, runs)
