@@ -28,6 +28,7 @@ import torch
 from doc_commands import REPO, DocCommand, doc_commands, spell_out
 from hydra import compose as hydra_compose
 from hydra.core.override_parser.overrides_parser import OverridesParser
+from results_history import in_history
 
 from umrl.cli.errors import unknown_key_errors
 from umrl.configs import ConfigError, validate
@@ -68,7 +69,7 @@ WRITTEN_EARLIER = {
     "outputs/diayn/point_nav/seed0": "the DIAYN run of the block (50 k env steps)",
     "outputs/suite/ref_half_cheetah/cells/half_cheetah/*/seed0-<key>.csv": "the suite command before it",
     "/tmp/ss/oracle_trpo_point/seed1/checkpoints/step_100.pt": "the MAML run of the block (100 iterations)",
-    "results/point_nav/diayn_trained/seed*": "results/README.md's DIAYN commands (git-ignored: 66 MB per run)",
+    "results/point_nav/diayn_trained/seed*": "results/README.md's DIAYN commands at 89c011f (git-ignored: 66 MB per run)",
     "results/half_cheetah/diayn_ref_1m/seed[12]": "plan.md's HC-D01 / HC-D2 rows (seed 0 is committed)",
     "results/half_cheetah/uml_diayn_ref/seed[12]": "plan.md's HC-M2 row (seed 0 is committed)",
     "results/half_cheetah/oracle_ref/seed2": "plan.md's HC-M1 row (seeds 0 and 1 are committed)",
@@ -82,7 +83,9 @@ checked up to it (its config composes and passes every other check, its argument
 
 
 def _written_earlier(path: str) -> bool:
-    return any(fnmatch.fnmatchcase(path, pattern) for pattern in WRITTEN_EARLIER)
+    """A path :data:`WRITTEN_EARLIER` lists, or one under a run folder that is in git history only (the history
+    pages' runs: ``git checkout <commit> -- results/<folder>`` brings one back; results/README.md lists them)."""
+    return any(fnmatch.fnmatchcase(path, pattern) for pattern in WRITTEN_EARLIER) or in_history(path)
 
 
 def _allowed(error: str) -> bool:
