@@ -4,6 +4,9 @@
         --run "paper=results/point_nav/uml_diayn_paper/seed{seed}" \
         --run "10 %=results/point_nav/uml_diayn_trained_paper_batch/seed{seed}"
 
+The runs named here left the tree (results/README.md lists them); bring them back first:
+``git checkout bbe1d9b -- results/point_nav/uml_diayn_paper results/point_nav/uml_diayn_trained_paper_batch``.
+
 A diagnostic, not a method: every run's policy (a MAML checkpoint, ``{seed}`` filled with each ``--seeds``) is
 adapted as the suite's MAML cells are (:func:`umrl.metatest.meta_test`, SGD at the checkpoint's inner lr, the chosen
 ``--schedule``, the env's first ``--num-tasks`` evaluation tasks, meta-test seed = the run's seed), once with its own

@@ -6,6 +6,9 @@
         --run "iteration 0=results/point_nav/uml_diayn_paper/seed{seed}:init" \
         --skills "results/point_nav/diayn_trained_skills/seed{seed}"
 
+The runs named here left the tree (results/README.md lists them); bring them back first:
+``git checkout bbe1d9b -- results/point_nav/uml_diayn_paper results/point_nav/uml_diayn_trained_paper_batch results/point_nav/diayn_trained_skills``.
+
 A diagnostic, not a method. For every run (a MAML checkpoint, ``{seed}`` filled with each ``--seeds``; ``:init``
 keeps the run's config but starts from the recipe's own initialisation for that seed, iteration 0) the MAML recipe's
 pieces (``umrl.trainers.maml.build``, ``meta_batch``, ``meta_step``) collect **one** meta-batch with the checkpoint's

@@ -5,6 +5,9 @@
         --run "10 %=results/point_nav/uml_diayn_trained_paper_batch/seed{seed}"
     python scripts/diagnostics/step_size.py --decompose --run "full=results/point_nav/uml_diayn_paper/seed{seed}"
 
+The runs named here left the tree (results/README.md lists them); bring them back first:
+``git checkout bbe1d9b -- results/point_nav/uml_diayn_paper results/point_nav/uml_diayn_trained_paper_batch``.
+
 A diagnostic, not a method. Every run's policy (a MAML checkpoint, ``{seed}`` filled with each ``--seeds``) is
 adapted as the suite's MAML cells are (:class:`umrl.metatest.protocol.TaskAdapter`: SGD at the checkpoint's inner lr
 ``α``, the reference schedule, the env's first ``--num-tasks`` evaluation tasks, meta-test seed = the run's seed) up
