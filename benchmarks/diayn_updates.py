@@ -2,6 +2,7 @@
 
     python benchmarks/diayn_updates.py                                   # half_cheetah, S = 1 3 6, cpu, eager
     python benchmarks/diayn_updates.py --threads 2 --seeds 1 3 6 --repeats 7
+    python benchmarks/diayn_updates.py --threads 2 --seeds 1 3 6 --repeats 5 --compile   # eager and compiled
     python benchmarks/diayn_updates.py --device cuda --seeds 1 4 8 --compile --cudagraphs
 
 What is timed is :meth:`umrl.trainers.diayn.DIAYNTrainer.step` at the recipe's defaults (2x300 networks, batch 128,
@@ -11,7 +12,9 @@ the same trainer's replay samples (``update``). One seed-update is one seed's SA
 step of S seeds is S seed-updates. Beside them, ``sacloss`` is one seed's update through TorchRL's ``SACLoss``
 (:class:`umrl.objectives.diayn.DIAYNUpdate`, the one-seed implementation) on the same sizes, update only. Variants
 are built from the same seeds and their timed repeats (``--steps`` steps each) interleaved; medians of
-``--repeats`` are printed, with ratios to S = 1 eager from the same run.
+``--repeats`` are printed, with ratios to S = 1 eager from the same run. ``--compile`` adds the variants with
+``optim.compile=true`` (on a CPU: the hand-derived gradients compiled, :class:`StackedDIAYNUpdate`); ``setup s`` is a
+variant's construction and warm-up (``--warmup`` steps after the random ones), which includes the compilation.
 
 The **arithmetic floor** is one seed-update's FLOPs (``torch.utils.flop_counter.FlopCounterMode`` around one update
 of one seed: the matmuls of forward and backward; Adam's element-wise work is not counted) divided by the matmul rate
@@ -24,6 +27,7 @@ from __future__ import annotations
 import argparse
 import statistics
 import tempfile
+import time
 from pathlib import Path
 
 import torch
@@ -78,8 +82,10 @@ class Variant:
             "log_every=1000000000", f"optim.compile={compile}", f"optim.cudagraphs={cudagraphs}",
             "logger.backend=none", "progress=false", f"output_dir={output_dir / f'{self.name}_S{num_seeds}'}",
         ]
+        start = time.perf_counter()
         self.trainer = DIAYNTrainer(compose("diayn", overrides))
         self.steps(args.batch_size + args.warmup)  # the random warm-up, then compilation or capture
+        self.setup_s = time.perf_counter() - start
 
     def steps(self, n: int) -> float:
         """Seconds for ``n`` trainer steps (device work included)."""
@@ -136,8 +142,6 @@ def main() -> None:
     device = torch.device(args.device)
     if args.cudagraphs and device.type != "cuda":
         raise SystemExit(f"--cudagraphs needs --device cuda (or auto on a GPU machine); got device {device}.")
-    if args.compile and device.type != "cuda":
-        raise SystemExit("--compile runs on a GPU only (the recipe refuses optim.compile on a CPU).")
     tune_process(num_threads=args.threads)  # as the recipes run
     modes = [(False, False)] + [(True, False)] * args.compile + [(False, True)] * args.cudagraphs
     modes += [(True, True)] * (args.compile and args.cudagraphs)
@@ -166,14 +170,14 @@ def main() -> None:
                   f"{rate / 1e9:.1f} GFLOP/s (median of {args.repeats}, {min(rates) / 1e9:.1f}-"
                   f"{max(rates) / 1e9:.1f}); {flops / 1e9:.3f} GFLOP per seed-update")
             print(f"{'env':<13} {'variant':<19} {'S':>3} {'loop s-upd/s':>13} {'update s-upd/s':>15} {'of floor':>9} "
-                  f"{'vs S=1':>7} {'floor s-upd/s':>14}")
+                  f"{'vs S=1':>7} {'floor s-upd/s':>14} {'setup s':>8}")
             base = None
             for variant in variants:
                 loop = args.steps * variant.num_seeds / statistics.median(loops[id(variant)])
                 update = args.steps * variant.num_seeds / statistics.median(updates[id(variant)])
                 base = loop if base is None and variant.num_seeds == min(args.seeds) else base
                 print(f"{env_name:<13} {variant.name:<19} {variant.num_seeds:>3} {loop:>13.1f} {update:>15.1f} "
-                      f"{loop / floor:>9.2f} {loop / base:>6.2f}x {floor:>14.0f}")
+                      f"{loop / floor:>9.2f} {loop / base:>6.2f}x {floor:>14.0f} {variant.setup_s:>8.1f}")
             sac = args.steps / statistics.median(sac_times)
             print(f"{env_name:<13} {'sacloss (1 seed)':<19} {1:>3} {'':>13} {sac:>15.1f} {sac / floor:>9.2f} "
                   f"{'':>7} {floor:>14.0f}")

@@ -212,3 +212,19 @@ def test_resume_on_a_gym_env_is_bit_identical(tmp_path, pendulum, recipe):
     diffs = checkpoint_diffs(read_checkpoint(whole["checkpoint"]), read_checkpoint(resumed["checkpoint"]))
     assert {path: d for path, d in diffs.items() if d != 0} == {}
     assert any("reset_rngs" in path for path in diffs)
+
+
+def test_diayn_on_a_gym_env_restarts_episodes_at_checkpoints_and_keeps_the_schedule(tmp_path, pendulum):
+    """gymnasium's vector env cannot give its copies' physics state: DIAYN restarts the episodes at every checkpoint
+    there (a resumed run restarts them too, so resuming stays exact), and a resume with another ``checkpoint.every``
+    is refused."""
+    from test_resume import BUDGET, config
+
+    from umrl.checkpoints.file import read_checkpoint
+    from umrl.trainers.diayn import train
+
+    key, stop, _ = BUDGET["diayn"]
+    result = train(config("diayn", tmp_path, pendulum.name, f"{key}={stop}"))
+    assert "episodes" not in read_checkpoint(result["checkpoint"])
+    with pytest.raises(ConfigError, match="checkpoint.every: checkpoint has 40, this run has 80"):
+        train(config("diayn", tmp_path, pendulum.name, f"{key}={stop * 2}", "checkpoint.every=80", "resume=true"))

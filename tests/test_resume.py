@@ -1,8 +1,9 @@
-"""Kill-and-resume: a run stopped at a checkpoint, or killed with SIGKILL mid-iteration, and resumed finishes with
-parameters bit-identical to an uninterrupted run (every recipe, point_nav and half_cheetah; at a checkpoint every
-tensor of the final checkpoint: networks, optimisers, replay buffers with their trajectory ids, RNGs, env states);
+"""Kill-and-resume: a run stopped at a checkpoint, by a signal between checkpoints, or killed with SIGKILL
+mid-iteration, and resumed finishes with parameters bit-identical to an uninterrupted run (every recipe, point_nav and
+half_cheetah; at a checkpoint every tensor of the final checkpoint: networks, optimisers, replay buffers with their
+trajectory ids, RNGs, env states, DIAYN's episodes in progress; after a signal also every logged training metric);
 resumes that would continue a different run are refused; an unreadable latest checkpoint falls back to the previous
-one."""
+one; a DIAYN checkpoint written before episodes were kept resumes with restarted episodes."""
 import importlib
 import os
 import signal
@@ -16,7 +17,7 @@ import torch
 from script_loading import REPO, sigkill_after
 from tensordict import TensorDictBase
 
-from umrl.checkpoints.file import read_checkpoint
+from umrl.checkpoints.file import read_checkpoint, write_checkpoint
 from umrl.checkpoints.folder import Checkpointer
 from umrl.configs import ConfigError
 from umrl.trainers import compose
@@ -151,7 +152,6 @@ def test_resume_falls_back_past_a_truncated_checkpoint(tmp_path):
     ("maml", "trpo.max_kl=0.5", "trpo.max_kl: checkpoint has 0.01, this run has 0.5"),
     ("maml", "env.horizon=12", "env.horizon: checkpoint has 10, this run has 12"),
     ("diayn", "optim.lr=0.5", "optim.lr: checkpoint has 0.0003, this run has 0.5"),
-    ("diayn", "checkpoint.every=80", "checkpoint.every: checkpoint has 40, this run has 80"),
 ])
 def test_resume_with_a_changed_config_is_refused_with_the_keys(tmp_path, recipe, change, message):
     train = importlib.import_module(f"umrl.trainers.{recipe}").train
@@ -159,6 +159,48 @@ def test_resume_with_a_changed_config_is_refused_with_the_keys(tmp_path, recipe,
     train(config(recipe, tmp_path, "point_nav", f"{key}={stop}"))
     with pytest.raises(ConfigError, match=message):
         train(config(recipe, tmp_path, "point_nav", f"{key}={stop * 2}", "resume=true", change))
+
+
+def test_diayn_resume_may_change_the_checkpoint_schedule(tmp_path):
+    """``checkpoint.every`` changes nothing but when checkpoints are written (the episodes go on through them): a
+    resume with another one writes on the new schedule from the resume on and finishes as the uninterrupted run."""
+    whole = train_diayn(config("diayn", tmp_path / "whole", "point_nav", "collector.total_frames=160",
+                               "checkpoint.every=80"))
+    train_diayn(config("diayn", tmp_path / "split", "point_nav", "collector.total_frames=80", "checkpoint.every=80",
+                       "checkpoint.keep_all=true"))
+    resumed = train_diayn(config("diayn", tmp_path / "split", "point_nav", "collector.total_frames=160",
+                                 "checkpoint.every=40", "checkpoint.keep_all=true", "resume=true"))
+    assert [p.name for p in Checkpointer(tmp_path / "split" / "checkpoints").all()] == [
+        "step_80.safetensors", "step_120.safetensors", "step_160.safetensors"]
+    a, b = read_checkpoint(whole["checkpoint"]), read_checkpoint(resumed["checkpoint"])
+    assert [path for path, d in checkpoint_diffs(a, b).items() if d != 0] == ["/counters/next_checkpoint"]
+    assert (a["counters"]["next_checkpoint"], b["counters"]["next_checkpoint"]) == (240, 200)
+
+
+def test_diayn_checkpoint_without_episodes_resumes_with_them_restarted(tmp_path):
+    """A program checkpoint written before DIAYN kept its episodes in progress (built here by dropping them) still
+    resumes: the episodes restart, with a warning, and the run reaches its budget. Episodes that do not fit the
+    env are refused, naming what differs."""
+    from umrl.trainers.diayn import DIAYNTrainer
+
+    train_diayn(config("diayn", tmp_path, "half_cheetah", "collector.total_frames=80"))
+    latest = Checkpointer(tmp_path / "checkpoints").latest()
+    state = read_checkpoint(latest)
+    del state["episodes"]["carry"]["skill"]
+    write_checkpoint(state, latest)
+    unfit = "do not fit this run's env: carry entries {'skill': None} where it has {'skill': '\\[4, 3\\] float32'}"
+    with pytest.raises(ValueError, match=unfit):
+        DIAYNTrainer(config("diayn", tmp_path, "half_cheetah", "collector.total_frames=120", "resume=true"))
+    del state["episodes"], state["envs"]["train"]["base_env"]["episodes"]
+    write_checkpoint(state, latest)
+    with pytest.warns(UserWarning, match="holds no episodes in progress .* they restart here"):
+        trainer = DIAYNTrainer(config("diayn", tmp_path, "half_cheetah", "collector.total_frames=120",
+                                      "resume=true"))
+    try:
+        assert trainer._carry["step_count"].eq(0).all()
+        assert trainer.train()["train/frames"] == 120
+    finally:
+        trainer.close()
 
 
 def signal_at_step(trainer, signum: int, step: int) -> None:
@@ -174,23 +216,39 @@ def signal_at_step(trainer, signum: int, step: int) -> None:
     trainer.step = step_then_signal
 
 
-STOPS = {"diayn": ("collector.total_frames", 160, "checkpoint.every=40", "step_80.safetensors"),
-         "maml": ("iterations", 4, "checkpoint.every=100", "step_2.safetensors"),
-         "vime": ("iterations", 4, "checkpoint.every=100", "step_2.safetensors")}
-"""(budget key, budget, checkpoint schedule, the checkpoint a stop during the 2nd step writes): MAML's and VIME's
-schedules save only at the start and the end, so their stop saves off schedule; DIAYN's episodes restart at every
-checkpoint, so its resume is exact when the stop falls on its schedule (here every batch)."""
+DIAYN_OFF_SCHEDULE = ("collector.total_frames=48", "collector.frames_per_batch=4", "collector.init_random_frames=16",
+                      "env.horizon=7", "log_every=16", "checkpoint.every=20")
+"""One step of each of 4 copies per batch, 7 steps an episode: the scheduled checkpoint (frame 20) and the stop
+(frame 24) both cut episodes, the stop also a logging interval (every 16 frames), and updates run on both sides."""
+STOPS = {"diayn": ("collector.total_frames", 48, DIAYN_OFF_SCHEDULE, 6, "step_24.safetensors"),
+         "maml": ("iterations", 4, ("checkpoint.every=100",), 2, "step_2.safetensors"),
+         "vime": ("iterations", 4, ("checkpoint.every=100",), 2, "step_2.safetensors")}
+"""(budget key, budget, settings, the step during which the signal comes, the checkpoint it writes): every stop
+falls between scheduled checkpoints."""
 
 
-@pytest.mark.parametrize("recipe", ["diayn", "maml", "vime"])
-def test_sigterm_saves_the_step_in_progress_and_the_resumed_run_is_exact(tmp_path, capsys, recipe):
+def logged_training_metrics(trainer) -> list:
+    """``(progress, metrics)`` of every :meth:`~umrl.trainers.base.Trainer.log` call of ``trainer`` from now on,
+    without the timings (``time/``)."""
+    rows = []
+    trainer.register_op("post_log", lambda t, metrics: rows.append(
+        (t.progress, {k: v for k, v in metrics.items() if not k.startswith("time/")})))
+    return rows
+
+
+@pytest.mark.parametrize(("recipe", "env_name", "seeds"), [
+    ("diayn", "point_nav", ()), ("diayn", "half_cheetah", ("seeds=[0,1]",)), ("maml", "point_nav", ()),
+    ("vime", "point_nav", ())], ids=["diayn-point_nav", "diayn-half_cheetah-S2", "maml", "vime"])
+def test_sigterm_saves_the_step_in_progress_and_the_resumed_run_is_exact(tmp_path, capsys, recipe, env_name, seeds):
     module = importlib.import_module(f"umrl.trainers.{recipe}")
     trainer_class = getattr(module, f"{recipe.upper()}Trainer")
-    key, budget, schedule, saved = STOPS[recipe]
+    key, budget, settings, stop_step, saved = STOPS[recipe]
+    overrides = (f"{key}={budget}", *settings, *seeds)
     stopped = tmp_path / "stopped"
     handler = signal.getsignal(signal.SIGTERM)
-    trainer = trainer_class(config(recipe, stopped, "point_nav", f"{key}={budget}", schedule))
-    signal_at_step(trainer, signal.SIGTERM, 2)
+    trainer = trainer_class(config(recipe, stopped, env_name, *overrides))
+    logged = logged_training_metrics(trainer)
+    signal_at_step(trainer, signal.SIGTERM, stop_step)
     with pytest.raises(SystemExit) as stop:
         trainer.train()
     trainer.close()
@@ -201,11 +259,24 @@ def test_sigterm_saves_the_step_in_progress_and_the_resumed_run_is_exact(tmp_pat
     assert capsys.readouterr().err.splitlines()[-1] == str(stop.value)  # the one line, also the exception's text
     assert str(stop.value).startswith("stopped by SIGTERM ") and f"saved {latest};" in str(stop.value)
 
-    resumed = module.train(config(recipe, stopped, "point_nav", f"{key}={budget}", schedule, "resume=true"))
-    whole = module.train(config(recipe, tmp_path / "whole", "point_nav", f"{key}={budget}", schedule))
+    def finish(output_dir, *more):
+        trainer = trainer_class(config(recipe, output_dir, env_name, *overrides, *more))
+        rows = logged_training_metrics(trainer)
+        try:
+            return trainer.train(), rows
+        finally:
+            trainer.close()
+
+    resumed, logged_after = finish(stopped, "resume=true")
+    whole, logged_whole = finish(tmp_path / "whole")
     diffs = checkpoint_diffs(read_checkpoint(whole["checkpoint"]), read_checkpoint(resumed["checkpoint"]))
     assert {path: d for path, d in diffs.items() if d != 0} == {}
     assert any(path.startswith(f"/{PARAMS[recipe]}/") for path in diffs)
+    assert logged + logged_after == logged_whole
+    if recipe == "diayn":  # the stop cut episodes whose returns are logged after it
+        assert {"/episodes/carry/step_count", "/envs/train/base_env/episodes/" + (
+            "position" if env_name == "point_nav" else "state")} <= set(diffs)
+        assert any(key.endswith("train/episode_return") for _, metrics in logged_after for key in metrics)
 
 
 def test_sigint_on_the_command_line_saves_and_ends_with_one_line(tmp_path):

@@ -1,7 +1,8 @@
 """The state of an env and of a replay buffer, as a checkpoint stores it for a faithful ``resume=true``.
 
 Beside the networks, optimisers and :func:`umrl.rng.rng_state`, a resume restores the env's random state (MuJoCo
-reset noise, :func:`env_state`) and the replay buffers' content (:func:`replay_buffer_state`)."""
+reset noise, :func:`env_state`), where asked the episodes in progress in its copies, and the replay buffers' content
+(:func:`replay_buffer_state`)."""
 from __future__ import annotations
 
 from collections.abc import Mapping
@@ -12,22 +13,43 @@ from torchrl.data import ReplayBuffer
 from torchrl.envs import EnvBase, TransformedEnv
 
 
-def env_state(env: EnvBase) -> dict:
-    """The random state of ``env`` (e.g. MuJoCo reset noise) and of its transforms, for :func:`load_env_state`.
+def env_state(env: EnvBase, *, episodes: bool = False) -> dict:
+    """The random state of ``env`` (e.g. MuJoCo reset noise) and of its transforms, for :func:`load_env_state`;
+    with ``episodes``, also the episodes in progress (``"episodes"``: the innermost env's ``episode_state()``, its
+    copies' physics) where that env has one (the batched MuJoCo envs and point_nav do; gymnasium's do not).
 
-    TorchRL's ``TransformedEnv.state_dict()`` leaves the base env out, so both are taken here."""
+    TorchRL's ``TransformedEnv.state_dict()`` leaves the base env out, so both are taken here. What the transforms
+    add to the episodes (the step count, a skill) lives in the env's last output TensorDict, which the caller keeps."""
     if isinstance(env, TransformedEnv):
-        return {"base_env": env_state(env.base_env), "transform": env.transform.state_dict()}
-    return {"env": env.state_dict()}
+        return {"base_env": env_state(env.base_env, episodes=episodes), "transform": env.transform.state_dict()}
+    state = {"env": env.state_dict()}
+    if episodes and hasattr(env, "episode_state"):
+        state["episodes"] = env.episode_state()
+    return state
 
 
-def load_env_state(env: EnvBase, state: Mapping[str, Any]) -> None:
-    """Restore what :func:`env_state` took from an env built the same way."""
+def keeps_episodes(env: EnvBase) -> bool:
+    """Whether :func:`env_state` with ``episodes=True`` holds the episodes in progress of ``env`` (its innermost env
+    has ``episode_state``)."""
+    while isinstance(env, TransformedEnv):
+        env = env.base_env
+    return hasattr(env, "episode_state")
+
+
+def load_env_state(env: EnvBase, state: Mapping[str, Any]) -> bool:
+    """Restore what :func:`env_state` took from an env built the same way; whether it held the episodes in progress
+    (then restored: the env steps on as the saved one would; else the caller restarts them)."""
     if isinstance(env, TransformedEnv):
-        load_env_state(env.base_env, state["base_env"])
+        restored = load_env_state(env.base_env, state["base_env"])
         env.transform.load_state_dict(state["transform"])
-    else:
-        env.load_state_dict(state["env"])
+        return restored
+    env.load_state_dict(state["env"])
+    if "episodes" not in state:
+        return False
+    if not hasattr(env, "load_episode_state"):
+        raise ValueError(f"the env state holds episodes in progress, which a {type(env).__name__} cannot restore.")
+    env.load_episode_state(state["episodes"])
+    return True
 
 
 def replay_buffer_state(buffer: ReplayBuffer) -> dict:

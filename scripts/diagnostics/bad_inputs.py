@@ -114,7 +114,6 @@ CASES = [
     recipe("diayn", "seed=99999999999999999999"),
     recipe("maml", "maml.inner_lr=1e30"),
     recipe("diayn", "optim.alpha=0"),
-    recipe("diayn", "optim.compile=true"),
     recipe("maml", "proposal=oracle", "num_skills=7"),
     recipe("diayn", "collector.init_random_frames=100000"),
     recipe("diayn", "optim.updates_per_frame=1e-9"),

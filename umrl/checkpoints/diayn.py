@@ -22,7 +22,11 @@ A run of seeds ``[s, ...]`` in ``<output_dir>`` writes, at every checkpoint:
   (``frames``, ``updates``, ``next_eval``, ``next_log``, ``next_checkpoint``, ``update_credit``),
   ``"random_metrics"``, ``"replay"`` (:func:`umrl.resume_state.replay_buffer_state` of the rows ``[S]``), ``"rng"``
   (:func:`umrl.rng.rng_state` with each seed's generator), ``"envs"`` (``{"train"}``:
-  :func:`umrl.resume_state.env_state`, MuJoCo's reset noise per seed), ``"config"``.
+  :func:`umrl.resume_state.env_state` with ``episodes=True``: MuJoCo's reset noise per seed and the copies' physics
+  where the env gives it), ``"episodes"`` (the episodes in progress, :meth:`DIAYNTrainer.state_dict
+  <umrl.trainers.diayn.DIAYNTrainer.state_dict>`: the env's last output, each copy's pseudo-return so far, the
+  logging interval's pending steps), ``"config"``. A program checkpoint without the episodes (written before umrl
+  kept them) resumes with them restarted.
 
 A single DIAYN checkpoint written before multi-seed runs (``"umrl.diayn.v1"`` with ``loss``, ``optimizers`` and
 ``replay``) still loads everywhere a seed's file does. The loaders take a seed's file or folder, or a run's

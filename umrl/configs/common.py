@@ -112,27 +112,13 @@ class TRPOConfig:
     max_backtracks: int = integer(min=0)
 
 
-COMPILE_ON_CPU = (
-    "torch.compile on a CPU: over a minute of compilation before the first update of a tiny run, and no faster "
-    "updates after (measured)"
-)
-"""Why DIAYN's ``optim.compile=true`` is refused without a GPU."""
-
-
 def cudagraphs_errors(cudagraphs: bool, device: str, key: str) -> list[str]:
     """The error of a CUDA-graph switch ``key`` set true on a device other than CUDA (``device`` resolved:
     ``cpu``/``cuda``)."""
     return _cuda_only_errors(key, cudagraphs, device, "CUDA graphs need device=cuda, or auto on a machine with a GPU")
 
 
-def compile_errors(compile: bool, device: str, key: str) -> list[str]:
-    """The error of a ``torch.compile`` switch ``key`` set true on a device other than CUDA (see
-    :data:`COMPILE_ON_CPU`)."""
-    return _cuda_only_errors(key, compile, device, "set device=cuda, or auto on a machine with a GPU",
-                             note=COMPILE_ON_CPU)
-
-
-def _cuda_only_errors(key: str, value: bool, device: str, why: str, note: str | None = None) -> list[str]:
+def _cuda_only_errors(key: str, value: bool, device: str, why: str) -> list[str]:
     if value and device != "cuda":
-        return [InvalidValue(key, True, f"false with device={device} ({why})", note=note).message()]
+        return [InvalidValue(key, True, f"false with device={device} ({why})").message()]
     return []

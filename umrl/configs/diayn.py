@@ -8,7 +8,6 @@ from umrl.configs.common import (
     BatchedEnvConfig,
     CheckpointConfig,
     RunConfig,
-    compile_errors,
     cudagraphs_errors,
 )
 from umrl.configs.memory import Allocation, allocation_errors, step_bytes
@@ -52,7 +51,7 @@ class ReplayBufferConfig:
 @dataclass
 class OptimConfig:
     """SAC's and the discriminator's optimisation; ``alpha`` > 0 (the entropy scale, learnt as its log unless
-    ``fixed_alpha``); ``compile`` and ``cudagraphs`` only with ``device=cuda``."""
+    ``fixed_alpha``); ``cudagraphs`` only with ``device=cuda``."""
 
     lr: float = number(gt=0)
     discriminator_lr: float = number(gt=0)
@@ -89,10 +88,9 @@ class DIAYNConfig(RunConfig):
     @staticmethod
     def cross_check(cfg: dict) -> list[str]:
         """Several seeds run on the batched MuJoCo env (not gymnasium's); the collector's batch holds whole env steps; the replay batch fits in the buffer; the discriminator's input
-        dims exist in the env's observation; CUDA graphs and torch.compile run on a CUDA device (``device`` is
+        dims exist in the env's observation; CUDA graphs run on a CUDA device (``device`` is
         resolved here); the replay buffer and the collector's batch fit in its memory (:func:`memory_errors`)."""
         errors = cudagraphs_errors(cfg["optim"]["cudagraphs"], cfg["device"], "optim.cudagraphs")
-        errors += compile_errors(cfg["optim"]["compile"], cfg["device"], "optim.compile")
         errors += memory_errors(cfg)
         dims, obs_dim = cfg["network"]["discriminator_input_dims"], get_env_spec(cfg["env"]["name"]).obs_dim
         if dims is not None and max(dims) >= obs_dim:

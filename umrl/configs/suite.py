@@ -12,7 +12,7 @@ from typing import Any
 
 from umrl.checkpoints import load_diayn_checkpoint, load_maml_checkpoint, load_vime_checkpoint
 from umrl.checkpoints.folder import Checkpointer
-from umrl.configs.common import LoggerConfig, compile_errors, cudagraphs_errors
+from umrl.configs.common import LoggerConfig, cudagraphs_errors
 from umrl.configs.diayn import DIAYNConfig
 from umrl.configs.maml import MAMLConfig, num_skills_errors
 from umrl.configs.memory import Allocation, allocation_errors, step_bytes
@@ -251,7 +251,6 @@ class SuiteConfig:
             optim = diayn.get("optim") or {}
             errors += cudagraphs_errors(bool(optim.get("cudagraphs")), cfg["device"],
                                         "pretrain.diayn.overrides.optim.cudagraphs")
-            errors += compile_errors(bool(optim.get("compile")), cfg["device"], "pretrain.diayn.overrides.optim.compile")
         if "device" not in maml:
             errors += cudagraphs_errors(bool(maml.get("cudagraphs")), cfg["device"], "pretrain.maml.overrides.cudagraphs")
         for run in needed_pretraining(cfg["methods"]):  # the MAML runs the suite trains take the overrides

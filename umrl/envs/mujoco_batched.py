@@ -21,7 +21,10 @@ reward (0 at reset), the physics keys of the env's registry record (0 at reset f
 ``"done"``/``"terminated"``/``"truncated"`` ``[B, 1]`` bool. No time limit: wrap with ``StepCounter``.
 
 Resume: the reset-noise generator is the env's only random state; ``set_seed`` seeds it, :attr:`rng_state` reads
-and writes it, and it travels in ``state_dict()`` / ``load_state_dict()`` (``nn.Module`` extra state).
+and writes it, and it travels in ``state_dict()`` / ``load_state_dict()`` (``nn.Module`` extra state). The episodes
+in progress (every copy's integration state and what the next step reads of the last one) are
+:meth:`~BatchedMujocoEnv.episode_state` / :meth:`~BatchedMujocoEnv.load_episode_state`: a copy restored from them steps
+on bit for bit as the saved one would.
 """
 
 from __future__ import annotations
@@ -294,6 +297,27 @@ class BatchedMujocoEnv(EnvBase):
         if not isinstance(state, dict) or "reset_rng" not in state:
             raise ValueError(f"expected extra state {{'reset_rng': ...}}, got keys {list(state)!r:.200}.")
         self.rng_state = state["reset_rng"]
+
+    # ------------------------------------------------------------------------------------------ episodes in progress
+    def episode_state(self) -> dict[str, np.ndarray]:
+        """Every copy where it stands (copies, float64): ``"state"`` ``[B, nstate]`` the integration state (time,
+        qpos, qvel, act, warm start, controls, applied forces), and what the next step reads of the last one:
+        ``"body_xy"`` ``[B, 2]``, ``"com_xy"`` ``[B, 2]``, ``"cfrc_ext"`` ``[B, nbody, 6]``."""
+        return {"state": self._state.copy(), "body_xy": self._body_xy.copy(), "com_xy": self._com_xy.copy(),
+                "cfrc_ext": self._cfrc_ext.copy()}
+
+    def load_episode_state(self, state: dict[str, np.ndarray]) -> None:
+        """Put every copy where :meth:`episode_state` took it (from an env of the same model and batch size);
+        ``ValueError`` naming the entry whose shape differs, before anything is written."""
+        targets = {"state": self._state, "body_xy": self._body_xy, "com_xy": self._com_xy,
+                   "cfrc_ext": self._cfrc_ext}
+        for key, target in targets.items():
+            found = list(np.shape(state[key])) if key in state else "none"
+            if found != list(target.shape):
+                raise ValueError(f"episode state {key!r} of a {self.NAME} env of {self.batch_size[0]} copies must "
+                                 f"have shape {list(target.shape)}, got {found}.")
+        for key, target in targets.items():
+            target[...] = state[key]
 
     # ---------------------------------------------------------------------------------------------- EnvBase API
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:

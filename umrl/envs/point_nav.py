@@ -10,6 +10,8 @@ task rewards are written by :class:`~umrl.transforms.task_reward.TaskReward`. Th
 
 Keys (batch size ``[B]``): ``"observation"`` and ``"position"`` ``[B, 2]`` (the same values), ``"action"``
 ``[B, 2]``, ``("next", "reward")`` ``[B, 1]`` and the usual ``"done"``/``"terminated"``/``"truncated"``.
+
+The episodes in progress are the positions: :meth:`PointNavEnv.episode_state` / :meth:`PointNavEnv.load_episode_state`.
 """
 from __future__ import annotations
 
@@ -82,6 +84,19 @@ class PointNavEnv(EnvBase):
         if self.arena is not None:
             self._position.clamp_(-self.arena, self.arena)
         return self._state(reward=torch.zeros(self.batch_size + (1,), device=self.device))
+
+    def episode_state(self) -> dict[str, torch.Tensor]:
+        """Every copy where it stands: ``"position"`` ``[B, 2]`` (a copy)."""
+        return {"position": self._position.clone()}
+
+    def load_episode_state(self, state: dict[str, torch.Tensor]) -> None:
+        """Put every copy where :meth:`episode_state` took it (from an env of the same batch size), in place;
+        ``ValueError`` if the shape differs."""
+        found = list(state["position"].shape) if "position" in state else "none"
+        if found != list(self._position.shape):
+            raise ValueError(f"episode state 'position' of a point_nav env of {self.batch_size[0]} copies must have "
+                             f"shape {list(self._position.shape)}, got {found}.")
+        self._position.copy_(state["position"])
 
     def _set_seed(self, seed: int | None) -> None:
         # The dynamics and the start state are deterministic: a seed changes nothing here.

@@ -98,10 +98,12 @@ class StackedMLP(nn.Module):
         return x
 
     @torch.no_grad()
-    def forward_saving(self, x: torch.Tensor) -> list[torch.Tensor]:
+    def forward_saving(self, x: torch.Tensor, *, per_network: bool | None = None) -> list[torch.Tensor]:
         """``[x, h_1, ..., h_{L-1}, y]`` for input ``x`` [N, M, in]: the input, every hidden layer's output (after
-        its ReLU) and the output ``y`` [N, M, out], as :meth:`forward` computes them, for :meth:`backward`."""
-        per_network = self.per_network_matmuls(x)
+        its ReLU) and the output ``y`` [N, M, out], as :meth:`forward` computes them, for :meth:`backward`.
+        ``per_network``: evaluate network by network (None: :meth:`per_network_matmuls` decides; a compiled caller
+        passes the decision in, as ``torch.get_num_threads`` cannot be traced)."""
+        per_network = self.per_network_matmuls(x) if per_network is None else per_network
         activations = [x]
         for index, (weight, bias) in enumerate(zip(self.weights, self.biases)):
             x = _matmul(x, weight.transpose(-1, -2), per_network, bias)
@@ -113,27 +115,36 @@ class StackedMLP(nn.Module):
     @torch.no_grad()
     def backward(self, activations: Sequence[torch.Tensor], grad_output: torch.Tensor, *,
                  weight_rows: slice | None = None, input_rows: slice | None = None,
-                 input_columns: slice | None = None) -> torch.Tensor | None:
+                 input_columns: slice | None = None, per_network: bool | None = None,
+                 ) -> tuple[list[torch.Tensor], list[torch.Tensor], torch.Tensor | None]:
         """Backpropagate ``grad_output`` [N, M, out] (the gradient of a loss by the output of
-        :meth:`forward_saving`, which returned ``activations``) and set every parameter's ``.grad`` (replacing it).
+        :meth:`forward_saving`, which returned ``activations``): ``(weight_grads, bias_grads, grad_input)``, the
+        gradients of every layer's weight [N, out, in] and bias [N, out] in layer order (no ``.grad`` is set).
 
         ``weight_rows``: only these rows of the batch contribute to the parameters' gradients (the others are
         propagated to the input only, as through networks read detached); None: all. ``input_rows`` and
-        ``input_columns``: also return the gradient by those rows and columns of the input, ``[N, rows, columns]``
-        (None for ``input_rows``: no input gradient is computed)."""
-        per_network = self.per_network_matmuls(grad_output)
+        ``input_columns``: ``grad_input`` is the gradient by those rows and columns of the input, ``[N, rows,
+        columns]`` (None for ``input_rows``: no input gradient is computed, ``grad_input`` is None).
+        ``per_network`` as in :meth:`forward_saving`."""
+        per_network = self.per_network_matmuls(grad_output) if per_network is None else per_network
         rows = slice(None) if weight_rows is None else weight_rows
-        grad = grad_output
+        grad, grad_input = grad_output, None
+        weight_grads, bias_grads = [None] * self.depth, [None] * self.depth
         for index in reversed(range(self.depth)):
             weight, layer_input = self.weights[index], activations[index]
             if index == 0 and input_rows is not None:
                 weight_in = weight if input_columns is None else weight[..., input_columns]
                 grad_input = _matmul(grad[:, input_rows], weight_in, per_network)
-            weight.grad = _matmul(grad[:, rows].transpose(-1, -2), layer_input[:, rows], per_network)
-            self.biases[index].grad = grad[:, rows].sum(-2)
+            weight_grads[index] = _matmul(grad[:, rows].transpose(-1, -2), layer_input[:, rows], per_network)
+            bias_grads[index] = grad[:, rows].sum(-2)
             if index > 0:  # through the layer, then the ReLU in front of it (its output > 0: relu's own backward)
                 grad = torch.ops.aten.threshold_backward(_matmul(grad, weight, per_network), layer_input, 0.0)
-        return grad_input if input_rows is not None else None
+        return weight_grads, bias_grads, grad_input
+
+    def set_grads(self, weight_grads: Sequence[torch.Tensor], bias_grads: Sequence[torch.Tensor]) -> None:
+        """Set every parameter's ``.grad`` (replacing it) to :meth:`backward`'s gradients."""
+        for parameter, grad in zip((*self.weights, *self.biases), (*weight_grads, *bias_grads), strict=True):
+            parameter.grad = grad
 
     def per_network_matmuls(self, x: torch.Tensor) -> bool:
         """Whether to evaluate network by network (one ``linear`` each) rather than in one ``baddbmm``: on a CPU
@@ -155,10 +166,14 @@ def _matmul(a: torch.Tensor, b: torch.Tensor, per_network: bool, bias: torch.Ten
     one ``mm``/``addmm`` per network written into a preallocated result (``per_network``: no stacking copy)."""
     if not per_network:
         return torch.bmm(a, b) if bias is None else torch.baddbmm(bias.unsqueeze(-2), a, b)
+    if a.shape[0] == 1:  # one network: its own result, viewed as a stack of one
+        return (torch.mm(a[0], b[0]) if bias is None else torch.addmm(bias[0], a[0], b[0])).unsqueeze(0)
     out = a.new_empty(a.shape[0], a.shape[1], b.shape[2])
-    for index in range(a.shape[0]):
-        if bias is None:
-            torch.mm(a[index], b[index], out=out[index])
-        else:
-            torch.addmm(bias[index], a[index], b[index], out=out[index])
+    # one unbind per operand (not one select per network and operand): fewer calls from Python
+    if bias is None:
+        for a_n, b_n, out_n in zip(a.unbind(0), b.unbind(0), out.unbind(0)):
+            torch.mm(a_n, b_n, out=out_n)
+    else:
+        for a_n, b_n, out_n, bias_n in zip(a.unbind(0), b.unbind(0), out.unbind(0), bias.unbind(0)):
+            torch.addmm(bias_n, a_n, b_n, out=out_n)
     return out

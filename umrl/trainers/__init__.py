@@ -14,7 +14,7 @@ closing).
   parts (:func:`~umrl.trainers.maml.build`, :func:`~umrl.trainers.maml.meta_batch`,
   :func:`~umrl.trainers.maml.meta_step`).
 - :mod:`umrl.trainers.diayn`: :class:`DIAYNTrainer` (skill discovery, the task proposal; ``step`` is one collector
-  batch, ``save`` also restarts the collector's episodes).
+  batch, ``save`` keeps the episodes in progress: they go on, also after a resume).
 - :mod:`umrl.trainers.vime`: :class:`VIMETrainer` (VIME pre-training, the VIME-init baseline).
 - :mod:`umrl.trainers.config`: :func:`compose` (defaults in ``umrl/configs/<name>.yaml`` plus Hydra overrides).
 

@@ -30,12 +30,14 @@ Files: per seed ``<output_dir>/seed<s>/checkpoints/step_<frames>.safetensors`` (
 skills: every DIAYN loader, the MAML recipe's ``diayn_checkpoint`` and the suite read it) and
 ``<output_dir>/seed<s>/figures/``; the program's whole state for ``resume=true`` in
 ``<output_dir>/checkpoints/step_<frames>.safetensors`` (format ``umrl.diayn_seeds.v1``, :mod:`umrl.checkpoints.diayn`):
-networks, Adam states, counters, the replay, every generator and the env's reset noise. A resumed run finishes
-bit-identical to an uninterrupted one in every tensor of its checkpoint.
+networks, Adam states, counters, the replay, every generator, the env's reset noise and the episodes in progress. A
+run resumed from any checkpoint, one a SIGTERM or Ctrl-C wrote between scheduled ones included, finishes
+bit-identical to an uninterrupted one in every tensor of its checkpoint and every logged training metric.
 """
 from __future__ import annotations
 
 import time
+import warnings
 from pathlib import Path
 
 import torch
@@ -59,8 +61,8 @@ from umrl.loggers import log_image
 from umrl.modules.discriminator import make_discriminator
 from umrl.modules.sac import make_skill_actor, make_skill_qvalue
 from umrl.objectives.diayn import DIAYNLoss
-from umrl.objectives.stacked_diayn import StackedDIAYNLoss, StackedDIAYNUpdate, tanh_normal_sample
-from umrl.resume_state import env_state, load_env_state
+from umrl.objectives.stacked_diayn import StackedDIAYNLoss, StackedDIAYNUpdate, tanh_normal_action
+from umrl.resume_state import env_state, keeps_episodes, load_env_state
 from umrl.rng import isolated_rng, rng_state, set_rng_state
 from umrl.seed_replay import SeedReplay
 from umrl.skill_coverage import coverage_metrics, evaluate_skills, plot_coverage
@@ -144,12 +146,13 @@ class DIAYNTrainer(Trainer):
     another run uses, or one holding checkpoints while ``cfg.resume`` is false, is refused before any work).
 
     :meth:`step` takes ``collector.frames_per_batch`` env steps per seed, then the updates they earn;
-    :meth:`evaluate` rolls out every seed's skills; :meth:`save` saves the program and each seed's skills,
-    then restarts the episodes (so an uninterrupted run continues exactly as a resumed one; with episodes of a
-    whole number of checkpoint intervals nothing is cut); :meth:`train` steps to ``collector.total_frames``
+    :meth:`evaluate` rolls out every seed's skills; :meth:`save` saves the program (the episodes in progress
+    included: they go on; gymnasium's envs, which cannot give them, restart them, as a resumed run does) and each
+    seed's skills; :meth:`train` steps to ``collector.total_frames``
     per seed, evaluating every ``eval.every`` frames and at the end (the loop and its hook points are
     :class:`~umrl.trainers.base.Trainer`'s). A config that differs from the checkpoint's beyond
-    ``umrl.configs.RESUME_ALLOW`` (or in ``checkpoint.every``) is refused. Nothing process-wide is set
+    ``umrl.configs.RESUME_ALLOW`` (on gymnasium's envs also in ``checkpoint.every``) is refused. Nothing
+    process-wide is set
     (:mod:`umrl.process`).
     """
 
@@ -182,10 +185,8 @@ class DIAYNTrainer(Trainer):
                           "discriminator_hidden": list(cfg.network.discriminator_hidden),
                           "discriminator_observation_key": ["observation"], "discriminator_input_dims": disc_dims}
         self.meta = {**self.seed_meta, "seeds": list(seeds)}
-        # the episodes restart at every checkpoint: a changed checkpoint.every would continue another run
-        allow = [key for key in RESUME_ALLOW if key != "checkpoint.every"]
         state = (DIAYN_SEEDS_FORMAT.load_for_resume(self.checkpointer, self.meta,
-                                                    lambda saved: check_resume(saved, cfg, allow))
+                                                    lambda saved: check_resume(saved, cfg))
                  if cfg.resume else None)
         if state is not None:
             check_budget_left("collector.total_frames", cfg.collector.total_frames,
@@ -195,7 +196,8 @@ class DIAYNTrainer(Trainer):
         self.seed_losses = [seed_networks(cfg, s, obs_dim, act_dim, num_skills).to(device) for s in seeds]
         self.loss = StackedDIAYNLoss.from_losses(self.seed_losses, gamma=cfg.optim.gamma).to(device)
         self.update = StackedDIAYNUpdate(self.loss, lr=cfg.optim.lr, discriminator_lr=cfg.optim.discriminator_lr,
-                                         tau=cfg.optim.tau)
+                                         tau=cfg.optim.tau, compile=cfg.optim.compile,
+                                         cudagraphs=cfg.optim.cudagraphs)
         self.generators = [torch.Generator(device=device).manual_seed(s) for s in seeds]
         self.counters = {"frames": 0, "updates": 0, "next_eval": cfg.eval.every, "next_log": cfg.log_every,
                          "next_checkpoint": cfg.checkpoint.every, "update_credit": 0.0}
@@ -204,6 +206,7 @@ class DIAYNTrainer(Trainer):
         # --- data ---------------------------------------------------------------------------------------
         self.env = make_skill_env(cfg, S * n, num_skills, seeds[0], self.generators)
         seed_reset_noise(self.env, seeds)
+        self.keeps_episodes = keeps_episodes(self.env)  # else every checkpoint restarts them (gymnasium's envs)
         self.eval_env = make_skill_env(cfg, num_skills * cfg.eval.episodes_per_skill, num_skills, seeds[0] + 10_000)
         self.replay = SeedReplay(cfg.replay_buffer.size, batch_size=cfg.replay_buffer.batch_size,
                                  generators=self.generators, act_dim=act_dim, device=device)
@@ -218,7 +221,12 @@ class DIAYNTrainer(Trainer):
         self.baseline: dict | None = None  # the random policy's rollouts (setup)
         self.random_metrics: dict[str, float] = {}  # their scores by the initial discriminators (setup)
         if state is not None:
+            if not self.keeps_episodes:  # the episodes restart at every checkpoint: another schedule, another run
+                check_resume(state["config"], cfg, [key for key in RESUME_ALLOW if key != "checkpoint.every"])
             self.load_state_dict(state)
+            every = cfg.checkpoint.every
+            if state["config"]["checkpoint"]["every"] != every:  # a changed schedule starts from here
+                self.counters["next_checkpoint"] = (self.counters["frames"] // every + 1) * every
         else:
             self._carry = self.env.reset()
 
@@ -269,33 +277,89 @@ class DIAYNTrainer(Trainer):
 
     def state_dict(self) -> dict:
         """Stacked networks, Adam states, counters, the random policy's metrics, the replay, every generator (the
-        global ones and each seed's) and the training env's state (reset noise)."""
+        global ones and each seed's), the training env's state (reset noise and its copies' physics) and, where
+        the env gives its physics (not gymnasium's), the episodes in progress (``"episodes"``: the env's last output
+        ``"carry"`` ``[S * n]``, with each copy's step count and skill; ``"episode_return"`` ``[S * n]``, the
+        scored part of each unfinished episode; ``"interval"``, what the next logged training metrics cover: its
+        env steps still to be scored, the summed losses, counts and times)."""
         return {"loss": self.loss.state_dict(),
                 "optimizers": {name: opt.state_dict() for name, opt in self.update.optimizers.items()},
                 "counters": dict(self.counters), "random_metrics": dict(self.random_metrics),
                 "replay": self.replay.state_dict(), "rng": rng_state(**self._named_generators()),
-                "envs": {"train": env_state(self.env)}}
+                "envs": {"train": env_state(self.env, episodes=True)},
+                **({"episodes": {"carry": self._carry.clone(), "episode_return": self.episode_return.clone(),
+                                 "interval": {**self._interval, "episodes": self._pending_steps(),
+                                              "returns": list(self._interval["returns"])}}}
+                   if self.keeps_episodes else {})}
+
+    def _pending_steps(self) -> list[TensorDictBase]:
+        """The interval's steps still to be scored as one batch ``[T, S * n]`` (a list of it, empty if none):
+        what :meth:`_flush_episodes` scores, in one tensor per key rather than one per step."""
+        steps = self._interval["episodes"]
+        return [torch.cat(steps)] if steps else []
 
     def _named_generators(self) -> dict[str, torch.Generator]:
         return {f"seed{s}": g for s, g in zip(self.seeds, self.generators)}
 
     def load_state_dict(self, state: dict) -> None:
-        """Restore :meth:`state_dict`'s (or a program checkpoint's) state; the episodes then restart as the
-        saved run's did right after saving."""
+        """Restore :meth:`state_dict`'s (or a program checkpoint's) state: the episodes in progress go on where
+        they stood (``ValueError`` if they do not fit this run's env). On gymnasium's envs they restart, as after
+        every checkpoint there; a checkpoint written before umrl kept them restarts them with a warning."""
+        template = self.env.reset()  # the carry's keys and shapes; what this reset drew is restored below
         self.loss.load_state_dict(state["loss"])
         for name, optimizer in self.update.optimizers.items():
             optimizer.load_state_dict(state["optimizers"][name])
         self.counters.update(state["counters"])
         self.random_metrics = dict(state["random_metrics"])
         self.replay.load_state_dict(state["replay"])
-        load_env_state(self.env, state["envs"]["train"])
+        env_episodes = load_env_state(self.env, state["envs"]["train"])
         set_rng_state(state["rng"], **self._named_generators())
+        if env_episodes and state.get("episodes") is not None:
+            self._load_episodes(state["episodes"], template)
+            return
+        if self.keeps_episodes:
+            warnings.warn(f"the DIAYN state at {self.counters['frames']} frames holds no episodes in progress (saved "
+                          "before umrl kept them): they restart here, so the run departs from an uninterrupted one",
+                          stacklevel=2)
         self._interval = self._new_interval()
+        self._restart_episodes()
+
+    def _restart_episodes(self) -> None:
+        """Every copy's episode starts anew (where the env cannot give its episodes in progress to a checkpoint)."""
         self._carry = self.env.reset()
         self.episode_return.zero_()
 
+    def _load_episodes(self, episodes: dict, template: TensorDictBase) -> None:
+        """Restore :meth:`state_dict`'s ``"episodes"``, checked against ``template`` (a reset's output)."""
+        carry, returns, interval = episodes["carry"], episodes["episode_return"], episodes["interval"]
+
+        def layout(value: torch.Tensor) -> str:
+            return f"{list(value.shape)} {str(value.dtype).removeprefix('torch.')}"
+
+        expected = {key: layout(value) for key, value in template.items(True, True)}
+        held = carry.keys(True, True) if isinstance(carry, TensorDictBase) else ()
+        found = {key: layout(carry[key]) if key in held else None for key in expected}
+        if found != expected:
+            saved = {key: found[key] for key in expected if found[key] != expected[key]}
+            wanted = {key: expected[key] for key in saved}
+            raise ValueError(f"the saved episodes in progress do not fit this run's env: carry entries {saved} "
+                             f"where it has {wanted}.")
+        shape = list(returns.shape) if isinstance(returns, torch.Tensor) else type(returns).__name__
+        entries = sorted(interval) if isinstance(interval, dict) else type(interval).__name__
+        if shape != list(self.episode_return.shape) or entries != sorted(self._new_interval()):
+            raise ValueError(f"the saved episodes in progress do not fit this run: episode_return {shape} (expected "
+                             f"{list(self.episode_return.shape)}), interval entries {entries} (expected "
+                             f"{sorted(self._new_interval())}).")
+        device = self.device
+        self._carry = carry.select(*expected).to(device).clone()  # its last action, overwritten first, aside
+        self.episode_return = returns.to(device).clone()
+        self._interval = {**interval, "sums": None if interval["sums"] is None else interval["sums"].to(device),
+                          "episodes": [steps.to(device) for steps in interval["episodes"]],
+                          "returns": [ended.to(device) for ended in interval["returns"]]}
+
     def _save(self) -> Path:
-        """The program's state and each seed's skills, then the episodes restart (what a resumed run does)."""
+        """The program's state and each seed's skills; the episodes go on (on gymnasium's envs they restart, as a
+        run resumed from here restarts them: the episodes cut here are not counted)."""
         frames = self.counters["frames"]
         path = DIAYN_SEEDS_FORMAT.save(self.checkpointer, frames, self.meta, self.cfg, **self.state_dict())
         for i, seed in enumerate(self.seeds):
@@ -306,9 +370,9 @@ class DIAYNTrainer(Trainer):
                                   actor=self.seed_losses[i].sac_loss.actor_network,
                                   discriminator=self.seed_losses[i].discriminator, counters=self.counters,
                                   config=seed_cfg)
-        self._flush_episodes()  # the episodes cut here are not counted
-        self._carry = self.env.reset()
-        self.episode_return.zero_()
+        if not self.keeps_episodes:
+            self._flush_episodes()
+            self._restart_episodes()
         return path
 
     def _evaluate(self, final: bool) -> dict[str, float]:
@@ -335,8 +399,7 @@ class DIAYNTrainer(Trainer):
             return self.replay.draw((n, self.act_dim), "uniform").view(S * n, -1)
         params = self.loss.actor(torch.cat([carry["observation"], carry["skill"]], -1).view(S, n, -1))
         noise = self.replay.draw((n, self.act_dim), "normal")
-        action, _ = tanh_normal_sample(*self.loss.scale_map(params), noise)
-        return action.reshape(S * n, -1)
+        return tanh_normal_action(*self.loss.scale_map(params), noise).reshape(S * n, -1)
 
     def _collect(self, steps: int) -> TensorDictBase:
         """``steps`` env steps of every copy: transitions ``[steps * n, S]`` (their states, skills and ends also kept
@@ -442,9 +505,7 @@ class DIAYNTrainer(Trainer):
         return metrics
 
     def _result(self) -> dict:
-        """The random policy's metrics and each seed's run folder (``runs``). A stop by a signal saves where
-        the episodes restart, as every checkpoint does: the resumed run matches an uninterrupted one exactly
-        when the stop falls on a ``checkpoint.every`` boundary."""
+        """The random policy's metrics and each seed's run folder (``runs``)."""
         return {**self.random_metrics, "runs": [str(seed_run_dir(self.output_dir, s)) for s in self.seeds]}
 
     def _description(self) -> str:
