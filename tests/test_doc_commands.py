@@ -68,7 +68,7 @@ WRITTEN_EARLIER = {
     "outputs/diayn/half_cheetah/seed0/checkpoints/step_*.pt": "the HC-D01 DIAYN run (1 M env steps)",
     "outputs/diayn/point_nav/seed0": "the DIAYN run of the block (50 k env steps)",
     "outputs/suite/ref_half_cheetah/cells/half_cheetah/*/seed0-<key>.csv": "the suite command before it",
-    "/tmp/ss/oracle_trpo_point/seed1/checkpoints/step_100.pt": "the MAML run of the block (100 iterations)",
+    "/tmp/ss/*/checkpoints/step_*.safetensors": "second_step.md's MAML runs (the training commands of each block)",
     "results/point_nav/diayn_trained/seed*": "results/README.md's DIAYN commands at 89c011f (git-ignored: 66 MB per run)",
     "results/half_cheetah/diayn_ref_1m/seed[12]": "plan.md's HC-D01 / HC-D2 rows (seed 0 is committed)",
     "results/half_cheetah/uml_diayn_ref/seed[12]": "plan.md's HC-M2 row (seed 0 is committed)",

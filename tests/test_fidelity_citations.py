@@ -51,7 +51,7 @@ def test_code_citation_points_at_its_symbol(path, line, symbol):
     lines = source.read_text(encoding="utf-8").splitlines()
     first = int(line)
     window = lines[first - 1: first + WINDOW]
-    found = [first + i for i, text in enumerate(lines) if symbol in text]
+    found = [i + 1 for i, text in enumerate(lines) if symbol in text]
     assert any(symbol in text for text in window), (
         f"docs/fidelity.md cites {path}:{line} for {symbol!r}, which is not on lines {first}..{first + WINDOW}; "
         f"it occurs on lines {found or 'none'}")

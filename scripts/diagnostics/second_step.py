@@ -16,7 +16,7 @@ Every (schedule, sampling) pair adapts the init at ``--run`` (a MAML run directo
 ``--num-tasks`` evaluation tasks, SGD at the checkpoint's inner lr ``α``, with the same meta-test seed. Printed, one
 markdown row per pair and ``k``: the mean return over tasks and its standard error, the worst task's return, the
 share of tasks below ``--collapse`` (default -50), the mean number of episodes per task's batch and their mean
-length. ``--log-std`` replaces the init's learned log-std (a diagnostic of the action noise's part, as
+length, and the mean log-std the batch was collected with (what the adaptation made of the init's). ``--log-std`` replaces the init's learned log-std (a diagnostic of the action noise's part, as
 ``scripts/diagnostics/action_noise.py``).
 """
 from __future__ import annotations
@@ -32,18 +32,19 @@ from umrl.envs.tasks import get_task_family
 from umrl.metatest import AdaptationConfig
 from umrl.metatest.protocol import SGD_SCHEDULES, TaskAdapter, make_eval_env
 from umrl.modules import policy_log_std
+from umrl.modules.policy import std_is_fixed
 from umrl.objectives.policy_gradient import episode_lengths, episode_mean
 from umrl.rng import seed_everything
 
 HEADER = ("| schedule | batch | k | mean return ± s.e. | worst task | tasks < {collapse:g} | episodes per batch "
-          "| episode length |\n|---|---|---|---|---|---|---|---|")
+          "| episode length | log σ |\n|---|---|---|---|---|---|---|---|---|")
 
 
 def adapt(path: str, *, env_name: str, tasks: torch.Tensor, seed: int, config: AdaptationConfig,
           log_std: float | None = None) -> dict:
     """Adapt the init at ``path`` as the suite's MAML cells do (its log-std set to ``log_std`` unless None);
-    returns ``returns`` ``[K + 1, T]``, ``episodes`` and ``lengths`` ``[K + 1, T]`` (episodes in each task's batch,
-    their mean length)."""
+    returns ``returns`` ``[K + 1, T]``, ``episodes``, ``lengths`` and ``log_std`` ``[K + 1, T]`` (episodes in each
+    task's batch, their mean length, the policy's log-std that collected it, averaged over action dims)."""
     policy, inner_lr = load_maml_policy(path)
     if log_std is not None:
         with torch.no_grad():
@@ -51,16 +52,17 @@ def adapt(path: str, *, env_name: str, tasks: torch.Tensor, seed: int, config: A
     seed_everything(seed)
     env = make_eval_env(env_name, tasks, config.num_trajectories, seed=seed, horizon=config.horizon)
     adapter = TaskAdapter(policy, env, tasks.shape[0], optimizer="sgd", lr=inner_lr, config=config)
-    episodes, lengths = [], []
+    episodes, lengths, log_std = [], [], []
 
     def record(step: int, batch) -> None:
         episodes.append(batch["mask"].any(-1).sum(-1))
         lengths.append(episode_mean(episode_lengths(batch).float(), batch))
+        log_std.append(batch["scale"][:, 0, 0].log().mean(-1))  # state-independent: any step's
 
     returns = adapter.run(record)
     env.close()
     return {"returns": returns.numpy(), "episodes": torch.stack(episodes).numpy(),
-            "lengths": torch.stack(lengths).numpy()}
+            "lengths": torch.stack(lengths).numpy(), "log_std": torch.stack(log_std).numpy()}
 
 
 def rows(schedule: str, sampling: str, result: dict, collapse: float) -> list[str]:
@@ -70,7 +72,7 @@ def rows(schedule: str, sampling: str, result: dict, collapse: float) -> list[st
         se = returns.std(ddof=1) / np.sqrt(len(returns))
         out.append(f"| {schedule} | {sampling} | {k} | {returns.mean():.1f} ± {se:.1f} | {returns.min():.1f} | "
                    f"{(returns < collapse).mean():.0%} | {result['episodes'][k].mean():.1f} | "
-                   f"{result['lengths'][k].mean():.1f} |")
+                   f"{result['lengths'][k].mean():.1f} | {result['log_std'][k].mean():.2f} |")
     return out
 
 
@@ -101,9 +103,10 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     tasks = get_task_family(args.env).eval_tasks(args.num_tasks)
-    saved = policy_log_std(load_maml_policy(args.run)[0]).mean().item()
-    print(f"init {args.run}: learned log-std {saved:.2f}" + ("" if args.log_std is None else
-                                                           f", replaced by {args.log_std:g}"), flush=True)
+    policy = load_maml_policy(args.run)[0]
+    saved, kind = policy_log_std(policy).mean().item(), "fixed" if std_is_fixed(policy) else "learned"
+    print(f"init {args.run}: {kind} log-std {saved:.2f}" + ("" if args.log_std is None else
+                                                          f", replaced by {args.log_std:g}"), flush=True)
     print(HEADER.format(collapse=args.collapse), flush=True)
     for schedule in args.schedules:
         for env_steps in args.env_steps:

@@ -5,7 +5,8 @@ A checkpoint is a dict (stored by :mod:`umrl.checkpoints.file`):
 - ``"format"``: ``"umrl.maml.v1"``;
 - ``"meta"``: ``env``, ``proposal`` (diayn | random | oracle), ``obs_dim``, ``act_dim``, ``hidden``, ``init_std``
   (arguments of :func:`umrl.modules.policy.make_gaussian_policy`), ``inner_lr``, ``num_inner_steps``,
-  ``first_order``, ``num_tasks``, ``trajectories_per_task``, ``horizon``, ``num_skills`` (None for oracle);
+  ``first_order``, ``num_tasks``, ``trajectories_per_task``, ``horizon``, ``num_skills`` (None for oracle), and
+  ``learn_std: False`` only for a run whose std was not learned (absent: learned);
 - ``"policy"``: state dict of the meta-trained initialisation θ;
 - ``"iteration"`` (meta-iterations done), ``"env_steps"``; ``"rng"`` (:func:`umrl.rng.rng_state`: torch, numpy,
   python and ``generators["task"]``, the generator that draws meta-batches) and ``"env"`` (the proposal env's
@@ -35,7 +36,8 @@ MAML_FORMAT = CheckpointFormat(
                "first_order", "num_tasks", "trajectories_per_task", "horizon", "num_skills"),
     networks=(Network("policy",
                       lambda m: make_gaussian_policy(m["obs_dim"], m["act_dim"], hidden=m["hidden"],
-                                                     init_std=m["init_std"]),
+                                                     init_std=m["init_std"],
+                                                     learn_std=m.get("learn_std", True)),
                       lambda m: [m["obs_dim"], *m["hidden"], m["act_dim"]]),),
 )
 

@@ -42,6 +42,15 @@ class MAMLEnvConfig(EnvConfig):
 
 
 @dataclass
+class MAMLPolicyConfig(PolicyConfig):
+    """:class:`PolicyConfig` plus ``learn_std``: false keeps the std at ``init_std`` in the inner step, the TRPO
+    step and the meta-test's adaptation (an ablation; maml_rl's ``MAMLGaussianMLPPolicy`` learns it,
+    ``learn_std=True`` at ``sandbox/rocky/tf/policies/maml_minimal_gauss_mlp_policy.py`` line 33)."""
+
+    learn_std: bool = boolean()
+
+
+@dataclass
 class InnerConfig:
     """``maml`` group: inner step size and count, FOMAML switch, per-task loop (true) / vmap (false) / auto (null)."""
 
@@ -69,7 +78,7 @@ class MetaTRPOConfig(TRPOConfig):
 def hvp_errors(cfg: Mapping) -> list[str]:
     """``trpo.hvp`` against the inner step it differentiates (a composed MAML config, also checked by the suite before
     its pre-training runs start): a Gauss–Newton product needs one inner step, ``analytic`` also the task-batched
-    MLP (``maml.task_loop=null``)."""
+    MLP (``maml.task_loop=null``) and a learned std (it differentiates the log-std by hand)."""
     errors, hvp, inner = [], cfg["trpo"]["hvp"], cfg["maml"]
     if hvp != "exact" and inner["num_inner_steps"] != 1:
         errors.append(InvalidValue("maml.num_inner_steps", inner["num_inner_steps"],
@@ -79,6 +88,9 @@ def hvp_errors(cfg: Mapping) -> list[str]:
         errors.append(InvalidValue("maml.task_loop", inner["task_loop"],
                                    "null with trpo.hvp=analytic (it differentiates the task-batched MLP; "
                                    "trpo.hvp=gauss_newton takes any)").message())
+    if hvp == "analytic" and not cfg["policy"]["learn_std"]:
+        errors.append(InvalidValue("trpo.hvp", hvp, "gauss_newton or exact with policy.learn_std=false (analytic "
+                                   "differentiates a learned log-std by hand)").message())
     return errors
 
 
@@ -133,7 +145,7 @@ class MAMLConfig(RunConfig):
     trajectories_per_task: int = integer(min=1)
     sample_by: str = choice(SAMPLE_BY)
     iterations: int = integer(min=1)
-    policy: PolicyConfig = group(PolicyConfig)
+    policy: MAMLPolicyConfig = group(MAMLPolicyConfig)
     maml: InnerConfig = group(InnerConfig)
     advantage: AdvantageConfig = group(AdvantageConfig)
     trpo: MetaTRPOConfig = group(MetaTRPOConfig)

@@ -241,10 +241,11 @@ often checkpoints are written and kept, logging, the progress bar, ``resume`` it
 Every other key (seed, env, widths, skill counts, learning rates, TRPO settings...) must match the
 checkpoint's saved config: changing it would silently continue a different run. An entry covers its sub-keys."""
 
-RESUME_ADDED = {"compile": False, "network.discriminator_input_dims": None, "env.module": None}
+RESUME_ADDED = {"compile": False, "network.discriminator_input_dims": None, "env.module": None,
+                "policy.learn_std": True}
 """Keys added to a recipe after runs were saved without them, with the value that computes what those runs computed:
 a checkpoint's config that lacks one matches a run with that value (MAML's ``compile``, DIAYN's whole-observation
-discriminator, no ``env.module``)."""
+discriminator, no ``env.module``, MAML's learned std)."""
 
 RESUME_FROM_ENV = {"num_skills": "diayn", "default_num_skills": "maml", "discriminator_hidden": "maml"}
 """Keys whose env default runs saved before the per-env config groups (:mod:`umrl.configs.env_groups`) left out of

@@ -176,7 +176,7 @@ def build(cfg: DictConfig, generator: torch.Generator | None = None):
     obs_dim, act_dim = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
     # the same draw as every method's random init for this seed (scratch's, VIME's), whatever the proposal drew
     policy = make_gaussian_policy(obs_dim, act_dim, hidden=list(cfg.policy.hidden), init_std=cfg.policy.init_std,
-                                  seed=cfg.seed)
+                                  learn_std=cfg.policy.learn_std, seed=cfg.seed)
     policy = policy.to(device)  # initialised on the CPU: the same weights on every device
     loss = MAMLLoss(policy, inner_lr=cfg.maml.inner_lr, num_inner_steps=cfg.maml.num_inner_steps,
                     first_order=cfg.maml.first_order, task_loop=cfg.maml.task_loop)
@@ -235,6 +235,7 @@ class MAMLTrainer(Trainer):
             "first_order": cfg.maml.first_order, "num_tasks": self.proposal.num_tasks,
             "trajectories_per_task": self.proposal.trajectories_per_task, "horizon": cfg.env.horizon,
             "num_skills": self.proposal.num_skills,
+            **({} if cfg.policy.learn_std else {"learn_std": False}),  # absent: learned (files written before it)
         }
         self.iteration, self.env_steps = 0, 0
         # FileNotFoundError says what is missing; ConfigError lists changed keys; ValueError if format or meta differ
