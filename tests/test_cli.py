@@ -23,7 +23,7 @@ def test_a_misspelt_key_gets_the_closest_key_and_every_unknown_key_is_listed():
         "maml.inner_lrr: got 0.1; expected a key of the maml config (did you mean maml.inner_lr?)",
         "inner_lr: got 0.5; expected a key of the maml config (did you mean maml.inner_lr?)",
         "mmal.inner_lr: got 2; expected a key of the maml config (did you mean maml.inner_lr?)",
-        "policy.nope: got 1; expected a key of the maml config (one of policy.hidden, policy.init_std)",
+        "policy.nope: got 1; expected a key of the maml config (one of policy.hidden, policy.init_std, policy.learn_std)",
     ]
 
 
