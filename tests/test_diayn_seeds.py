@@ -148,18 +148,26 @@ def test_hand_derived_gradients_equal_autograds(dtype, tolerance, fixed_alpha, n
         torch.testing.assert_close(named[name].grad, parameter.grad, rtol=0, atol=tolerance * scale, msg=name)
 
 
-def test_twenty_hand_derived_updates_follow_the_autograd_updates():
-    """20 Adam + Polyak updates of three seeds (learned alpha) with either gradients, float32: every parameter within
-    1e-6 (measured: 3e-8) after them."""
+def updates_that_agree(options: list[dict], steps: int) -> tuple[list[StackedDIAYNUpdate], list]:
+    """Two :class:`StackedDIAYNUpdate` of the same three seeds (learned alpha, float32), one per ``options`` entry,
+    after ``steps`` updates on the same batches, checked to agree: outputs within 1e-5, every parameter within 1e-6.
+    Returns them and the seeds' initial losses."""
     losses = [seed_loss(s, fixed_alpha=False, target_entropy=-2.0).float() for s in range(3)]
     updates = [StackedDIAYNUpdate(StackedDIAYNLoss.from_losses(losses, gamma=0.9), lr=1e-3, discriminator_lr=1e-3,
-                                  tau=0.1, gradients=gradients) for gradients in ("autograd", "analytic")]
-    for step in range(20):
+                                  tau=0.1, **option) for option in options]
+    for step in range(steps):
         batch = noisy_batch(3, torch.float32, seed=step)
         outs = [update(batch) for update in updates]
     torch.testing.assert_close(outs[1], outs[0], rtol=0, atol=1e-5)
     for (name, a), b in zip(updates[0].loss.state_dict().items(), updates[1].loss.state_dict().values(), strict=True):
         torch.testing.assert_close(b, a, rtol=0, atol=1e-6, msg=name)
+    return updates, losses
+
+
+def test_twenty_hand_derived_updates_follow_the_autograd_updates():
+    """20 Adam + Polyak updates of three seeds (learned alpha) with either gradients, float32: every parameter within
+    1e-6 (measured: 3e-8) after them."""
+    updates, _ = updates_that_agree([{"gradients": "autograd"}, {"gradients": "analytic"}], steps=20)
     with pytest.raises(ValueError, match="gradients='numeric' is not one of"):
         StackedDIAYNUpdate(updates[0].loss, lr=1e-3, discriminator_lr=1e-3, tau=0.1, gradients="numeric")
 
@@ -169,15 +177,7 @@ def test_compiled_hand_derived_updates_follow_the_eager_ones():
     """StackedDIAYNUpdate(compile=True) on a CPU (the hand-derived gradients under torch.compile) against eager, five
     updates of three seeds (learned alpha), float32: outputs within 1e-5 (measured: 1e-6), every parameter within
     1e-6 (measured: 3e-8). The first call compiles (≈ 1 min on 2 cores; seconds from inductor's cache)."""
-    losses = [seed_loss(s, fixed_alpha=False, target_entropy=-2.0).float() for s in range(3)]
-    updates = [StackedDIAYNUpdate(StackedDIAYNLoss.from_losses(losses, gamma=0.9), lr=1e-3, discriminator_lr=1e-3,
-                                  tau=0.1, compile=compile) for compile in (False, True)]
-    for step in range(5):
-        batch = noisy_batch(3, torch.float32, seed=step)
-        outs = [update(batch) for update in updates]
-    torch.testing.assert_close(outs[1], outs[0], rtol=0, atol=1e-5)
-    for (name, a), b in zip(updates[0].loss.state_dict().items(), updates[1].loss.state_dict().values(), strict=True):
-        torch.testing.assert_close(b, a, rtol=0, atol=1e-6, msg=name)
+    updates, losses = updates_that_agree([{"compile": False}, {"compile": True}], steps=5)
     assert not torch.equal(StackedDIAYNLoss.from_losses(losses, gamma=0.9).actor.weights[0], updates[1].loss.actor.weights[0])
 
 
