@@ -44,8 +44,9 @@ def test_resume_checks_format_and_meta(tmp_path):
     config = {"seed": 0, "iterations": 5}
     MAML_FORMAT.save(checkpointer, 1, meta, config)
     same = lambda saved: check_resume(saved, {**config, "iterations": 9})
-    assert MAML_FORMAT.load_for_resume(checkpointer, meta, same)["meta"] == meta
-    with pytest.raises(ValueError, match=r"differs from the checkpoint's.*'horizon': \(1, 2\)"):
+    path, state = MAML_FORMAT.load_for_resume(checkpointer, meta, same)
+    assert state["meta"] == meta and path == checkpointer.all()[-1]
+    with pytest.raises(ValueError, match=rf"differs from {path}'s.*'horizon': \(1, 2\)"):
         MAML_FORMAT.load_for_resume(checkpointer, {**meta, "horizon": 2})
     with pytest.raises(ValueError, match="seed: checkpoint has 0, this run has 3"):
         MAML_FORMAT.load_for_resume(checkpointer, meta, lambda saved: check_resume(saved, {**config, "seed": 3}))

@@ -177,7 +177,7 @@ def test_non_finite_content_is_refused_by_name_and_resume_falls_back(tmp_path, k
         with pytest.raises(CheckpointError, match=rf"cannot read checkpoint {bad} \(a {fmt.what} checkpoint\): {why}"):
             getattr(checkpoints, loader)(tmp_path)
     with pytest.warns(UserWarning, match=rf"skipping unreadable checkpoint {bad}"):
-        state = fmt.load_for_resume(Checkpointer(tmp_path / "checkpoints"), meta)
+        _, state = fmt.load_for_resume(Checkpointer(tmp_path / "checkpoints"), meta)
     assert state["meta"] == meta and Checkpointer(tmp_path / "checkpoints").all() == [good]
     assert (tmp_path / "checkpoints" / "step_2.safetensors.unreadable").is_file()
 

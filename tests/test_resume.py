@@ -180,7 +180,7 @@ def test_diayn_resume_may_change_the_checkpoint_schedule(tmp_path):
 def test_diayn_checkpoint_without_episodes_resumes_with_them_restarted(tmp_path):
     """A program checkpoint written before DIAYN kept its episodes in progress (built here by dropping them) still
     resumes: the episodes restart, with a warning, and the run reaches its budget. Episodes that do not fit the
-    env are refused, naming what differs."""
+    env are refused, naming the file and what differs."""
     from umrl.trainers.diayn import DIAYNTrainer
 
     train_diayn(config("diayn", tmp_path, "half_cheetah", "collector.total_frames=80"))
@@ -188,7 +188,8 @@ def test_diayn_checkpoint_without_episodes_resumes_with_them_restarted(tmp_path)
     state = read_checkpoint(latest)
     del state["episodes"]["carry"]["skill"]
     write_checkpoint(state, latest)
-    unfit = "do not fit this run's env: carry entries {'skill': None} where it has {'skill': '\\[4, 3\\] float32'}"
+    unfit = (f"cannot resume from {latest}: the saved episodes in progress do not fit this run's env: carry "
+             "entries {'skill': None} where it has {'skill': '\\[4, 3\\] float32'}")
     with pytest.raises(ValueError, match=unfit):
         DIAYNTrainer(config("diayn", tmp_path, "half_cheetah", "collector.total_frames=120", "resume=true"))
     del state["episodes"], state["envs"]["train"]["base_env"]["episodes"]

@@ -201,17 +201,17 @@ class CheckpointFormat:
         return self.check(read_checkpoint(file), file)
 
     def load_for_resume(self, checkpointer: Checkpointer, meta: Mapping[str, Any],
-                        check_config: Callable[[Any], None] | None = None) -> dict:
-        """The newest readable checkpoint of ``checkpointer`` (an unreadable newer one is skipped with a warning
-        naming it), checked, for a run whose networks are described by ``meta``.
+                        check_config: Callable[[Any], None] | None = None) -> tuple[Path, dict]:
+        """``(path, state)`` of the newest readable checkpoint of ``checkpointer`` (an unreadable newer one is
+        skipped with a warning naming it), checked, for a run whose networks are described by ``meta``.
 
         ``check_config(saved_config)`` runs first (recipes pass ``lambda saved: umrl.configs.check_resume(saved,
         cfg)``: a ``ConfigError`` listing the keys that differ beyond ``RESUME_ALLOW``); then ``ValueError`` if
-        ``meta`` differs from the saved one."""
-        _, state = checkpointer.load_latest_valid(check=self.check)
+        ``meta`` differs from the saved one (naming the file)."""
+        path, state = checkpointer.load_latest_valid(check=self.check)
         if check_config is not None:
             check_config(state["config"])
         mismatched = {k: (state["meta"].get(k), v) for k, v in meta.items() if state["meta"].get(k) != v}
         if mismatched:
-            raise ValueError(f"resume=true with a config that differs from the checkpoint's (saved, now): {mismatched}.")
-        return state
+            raise ValueError(f"resume=true with a config that differs from {path}'s (saved, now): {mismatched}.")
+        return path, state

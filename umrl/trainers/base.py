@@ -109,6 +109,14 @@ class Trainer:
     def _setup(self) -> dict[str, float]:
         return {}
 
+    def restore(self, path: Path, state: dict) -> None:
+        """``load_state_dict(state)`` of the checkpoint read from ``path``; a state that does not fit this run is
+        refused with a ``ValueError`` naming the file."""
+        try:
+            self.load_state_dict(state)
+        except (ValueError, KeyError, RuntimeError) as e:
+            raise ValueError(f"cannot resume from {path}: {e}") from e
+
     def _evaluate(self, final: bool) -> dict[str, float]:
         return {}
 

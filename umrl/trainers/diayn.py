@@ -185,9 +185,9 @@ class DIAYNTrainer(Trainer):
                           "discriminator_hidden": list(cfg.network.discriminator_hidden),
                           "discriminator_observation_key": ["observation"], "discriminator_input_dims": disc_dims}
         self.meta = {**self.seed_meta, "seeds": list(seeds)}
-        state = (DIAYN_SEEDS_FORMAT.load_for_resume(self.checkpointer, self.meta,
-                                                    lambda saved: check_resume(saved, cfg))
-                 if cfg.resume else None)
+        path, state = (DIAYN_SEEDS_FORMAT.load_for_resume(self.checkpointer, self.meta,
+                                                          lambda saved: check_resume(saved, cfg))
+                       if cfg.resume else (None, None))
         if state is not None:
             check_budget_left("collector.total_frames", cfg.collector.total_frames,
                               state["counters"]["frames"], "frames", self.output_dir)
@@ -223,7 +223,7 @@ class DIAYNTrainer(Trainer):
         if state is not None:
             if not self.keeps_episodes:  # the episodes restart at every checkpoint: another schedule, another run
                 check_resume(state["config"], cfg, [key for key in RESUME_ALLOW if key != "checkpoint.every"])
-            self.load_state_dict(state)
+            self.restore(path, state)
             every = cfg.checkpoint.every
             if state["config"]["checkpoint"]["every"] != every:  # a changed schedule starts from here
                 self.counters["next_checkpoint"] = (self.counters["frames"] // every + 1) * every

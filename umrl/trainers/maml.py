@@ -239,11 +239,12 @@ class MAMLTrainer(Trainer):
         }
         self.iteration, self.env_steps = 0, 0
         # FileNotFoundError says what is missing; ConfigError lists changed keys; ValueError if format or meta differ
-        state = (MAML_FORMAT.load_for_resume(self.checkpointer, self.meta, lambda saved: check_resume(saved, cfg))
-                 if cfg.resume else None)
+        path, state = (MAML_FORMAT.load_for_resume(self.checkpointer, self.meta,
+                                                    lambda saved: check_resume(saved, cfg))
+                       if cfg.resume else (None, None))
         self.resumed = state is not None
         if state is not None:
-            self.load_state_dict(state)
+            self.restore(path, state)
             check_budget_left("iterations", cfg.iterations, self.iteration, "iterations", self.output_dir)
 
     @property

@@ -161,10 +161,11 @@ class VIMETrainer(Trainer):
         self.initial_coverage: dict[str, float] = {}
         self.last_batch: TensorDictBase | None = None
         # FileNotFoundError says what is missing; ConfigError lists changed keys; ValueError if format or meta differ
-        state = (VIME_FORMAT.load_for_resume(self.checkpointer, self.meta, lambda saved: check_resume(saved, cfg))
-                 if cfg.resume else None)
+        path, state = (VIME_FORMAT.load_for_resume(self.checkpointer, self.meta,
+                                                    lambda saved: check_resume(saved, cfg))
+                       if cfg.resume else (None, None))
         if state is not None:
-            self.load_state_dict(state)
+            self.restore(path, state)
             check_budget_left("iterations", cfg.iterations, self.counters["iteration"], "iterations", self.output_dir)
 
     @property
