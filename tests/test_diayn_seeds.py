@@ -240,7 +240,7 @@ def test_the_recipe_passes_its_compile_setting_to_the_update(tmp_path):
     this test does not reach); false keeps them eager."""
     for compile in (False, True):
         trainer = DIAYNTrainer(tiny(tmp_path / str(compile), "point_nav", f"optim.compile={compile}"))
-        assert (trainer.update._gradient_function is not None) == compile
+        assert (trainer.update.runner.compiled_target is not None) == compile
         trainer.close()
 
 

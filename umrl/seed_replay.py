@@ -17,7 +17,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 
 __all__ = ["SeedReplay"]
 
@@ -100,11 +100,14 @@ class SeedReplay:
         if self.size == 0:
             raise RuntimeError("SeedReplay.sample: the buffer is empty.")
         rows = torch.stack([torch.randint(self.size, (self.batch_size,), generator=g, device=self.device)
-                            for g in self.generators])
-        batch = self.storage[rows, self._columns.expand_as(rows)]
-        batch.set(("next", "action_noise"), self.draw((self.batch_size, self.act_dim), "normal"))
-        batch.set("action_noise", self.draw((self.batch_size, self.act_dim), "normal"))
-        return batch
+                            for g in self.generators])  # [S, batch_size]
+        # one index_select per key on the storage viewed as [capacity * S]: less work than TensorDict's indexing
+        index = (rows * len(self.generators) + self._columns).view(-1)
+        batch = {key: leaf.flatten(0, 1).index_select(0, index).view(*rows.shape, *leaf.shape[2:])
+                 for key, leaf in self._leaves}
+        batch["next", "action_noise"] = self.draw((self.batch_size, self.act_dim), "normal")
+        batch["action_noise"] = self.draw((self.batch_size, self.act_dim), "normal")
+        return TensorDict(batch, batch_size=rows.shape, device=self.device)
 
     def state_dict(self) -> dict:
         """The filled rows (a clone, oldest first), for :meth:`load_state_dict`."""

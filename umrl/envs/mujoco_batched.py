@@ -355,27 +355,25 @@ class BatchedMujocoEnv(EnvBase):
         return out
 
     def _output(self, env_reward, physics, terminated, *, reward: bool = False) -> TensorDictBase:
-        """The step/reset TensorDict, built on CPU and moved to the env's device in one call."""
+        """The step/reset TensorDict, built on CPU and put on the env's device as it is built (a device-less
+        TensorDict's ``.to`` costs ~0.1 ms a step on a CPU)."""
         B = self.batch_size[0]
 
         def f32(x: np.ndarray) -> torch.Tensor:
             return torch.from_numpy(np.asarray(x, dtype=np.float32).reshape(B, -1))
 
         done = torch.from_numpy(np.asarray(terminated, dtype=bool).reshape(B, 1))
-        out = TensorDict(
-            {
-                "observation": f32(self._observe()),
-                "env_reward": f32(env_reward),
-                **{k: f32(v) for k, v in physics.items()},
-                "done": done,
-                "terminated": done.clone(),
-                "truncated": torch.zeros(B, 1, dtype=torch.bool),
-            },
-            batch_size=self.batch_size,
-        )
+        values = {
+            "observation": f32(self._observe()),
+            "env_reward": f32(env_reward),
+            **{k: f32(v) for k, v in physics.items()},
+            "done": done,
+            "terminated": done.clone(),
+            "truncated": torch.zeros(B, 1, dtype=torch.bool),
+        }
         if reward:
-            out.set("reward", torch.zeros(B, 1))
-        return out.to(self.device)
+            values["reward"] = torch.zeros(B, 1)
+        return TensorDict(values, batch_size=self.batch_size, device=self.device)
 
     def _set_seed(self, seed: int | None) -> None:
         self._rngs = [np.random.default_rng(seed)]

@@ -345,22 +345,27 @@ class UpdateRunner:
     """Runs one update function ``step(batch) -> TensorDict`` eagerly, under ``torch.compile`` and/or captured in a
     CUDA graph (:class:`tensordict.nn.CudaGraphModule`), modelled on TorchRL's ``sota-implementations/sac``.
 
-    ``compile``: ``True`` picks TorchRL's mode rule (``"default"`` with CUDA graphs, else ``"reduce-overhead"``), a
-    string is the mode (one of :data:`COMPILE_MODES`). Outputs of static CUDA-graph buffers are cloned, so they
+    ``compile``: ``True`` picks TorchRL's mode rule (``"default"`` with CUDA graphs or a ``compile_target``, else
+    ``"reduce-overhead"``), a string is the mode (one of :data:`COMPILE_MODES`). ``compile_target``: a function
+    ``step`` calls, compiled instead of ``step`` itself (:attr:`compiled_target`, None when ``compile`` is off), for
+    an update whose rest gains nothing from compiling. Outputs of static CUDA-graph buffers are cloned, so they
     survive the next call; a compilation failure is re-raised naming the switch that turns it off.
     """
 
     def __init__(self, step, *, compile: bool | str = False, cudagraphs: bool = False,
-                 device: torch.device | str = "cpu"):
+                 device: torch.device | str = "cpu", compile_target=None):
         if isinstance(compile, str) and compile not in COMPILE_MODES:
             raise ValueError(f"compile mode {compile!r} is not one of {COMPILE_MODES} (or True / False).")
         self.compile_mode = None
         if compile:
             self.compile_mode = compile if isinstance(compile, str) else (
-                "default" if cudagraphs else "reduce-overhead")
+                "default" if cudagraphs or compile_target is not None else "reduce-overhead")
         # CUDA graphs (ours, or inductor's in these modes) reuse their output buffers at the next call
         self._static_outputs = cudagraphs or self.compile_mode in ("reduce-overhead", "max-autotune")
-        if self.compile_mode is not None:
+        self.compiled_target = None
+        if self.compile_mode is not None and compile_target is not None:
+            self.compiled_target = torch.compile(compile_target, dynamic=False, mode=self.compile_mode)
+        elif self.compile_mode is not None:
             step = compile_with_warmup(step, mode=self.compile_mode, warmup=1)
         if cudagraphs:
             step = CudaGraphModule(step, in_keys=[], out_keys=[], warmup=5, device=torch.device(device))

@@ -39,7 +39,7 @@ from torchrl.objectives import LossModule
 
 from umrl.modules.discriminator import ObservationDims
 from umrl.modules.stacked_mlp import StackedMLP, linear_layers
-from umrl.objectives.diayn import COMPILE_MODES, DIAYNLoss, UpdateRunner, check_capturable
+from umrl.objectives.diayn import DIAYNLoss, UpdateRunner, check_capturable
 from umrl.transforms.discriminator_reward import skill_reward
 from umrl.validation import check_keys, check_probability
 
@@ -446,21 +446,17 @@ class StackedDIAYNUpdate:
         self._online = list(loss.qvalue.parameters())
         device = loss.log_alpha.device
         check_capturable(self.optimizers, cudagraphs, device)
-        self._gradient_function = None  # StackedDIAYNLoss.hand_derived_gradients, eager
-        if compile and device.type == "cpu" and gradients == "analytic":
-            if isinstance(compile, str) and compile not in COMPILE_MODES:
-                raise ValueError(f"compile mode {compile!r} is not one of {COMPILE_MODES} (or True / False).")
-            self._gradient_function = torch.compile(loss.hand_derived_gradients, dynamic=False,
-                                                    mode=compile if isinstance(compile, str) else "default")
-            compile = False
-        self.runner = UpdateRunner(self._step, compile=compile, cudagraphs=cudagraphs, device=device)
+        # on a CPU the hand-derived gradients alone are compiled: Adam is already fused
+        target = loss.hand_derived_gradients if device.type == "cpu" and gradients == "analytic" else None
+        self.runner = UpdateRunner(self._step, compile=compile, cudagraphs=cudagraphs, device=device,
+                                   compile_target=target)
 
     def __call__(self, batch: TensorDictBase) -> TensorDictBase:
         return self.runner(batch)
 
     def _step(self, batch: TensorDictBase) -> TensorDictBase:
         if self.gradients == "analytic":
-            out = self.loss.gradients(batch, self._gradient_function)
+            out = self.loss.gradients(batch, self.runner.compiled_target)
         else:
             out = self.loss(batch)
             sum(out[key].sum() for key in ("loss_actor", "loss_qvalue", "loss_alpha", "loss_discriminator")).backward()
