@@ -133,6 +133,37 @@ def test_sigkill_mid_iteration_then_resume_is_bit_identical(tmp_path):
     assert max_param_diff(a["policy"], b["policy"]) == 0.0
 
 
+def logged_rows(run_dir) -> dict[str, list[tuple[int, str]]]:
+    """``metric -> [(step, value)]`` of a run's CSV logs (``time/`` metrics: steps only, their values are clocks)."""
+    rows = {}
+    for scalars in (run_dir / "csv").rglob("scalars"):
+        for file in sorted(scalars.rglob("*.csv")):
+            name = file.relative_to(scalars).with_suffix("").as_posix()
+            lines = [line.split(",", 1) for line in file.read_text().splitlines()]
+            rows[name] = [(int(step), "" if name.startswith("time/") else value) for step, value in lines]
+    return rows
+
+
+def test_resume_drops_the_rows_logged_past_the_checkpoint(tmp_path):
+    """A run killed after logging iterations 3 and 4 but before saving them resumes from its checkpoint 2; its CSV
+    logs then hold each iteration once, as the uninterrupted run's (not 3 and 4 twice)."""
+    from umrl.trainers.maml import train
+
+    def cfg(folder, iterations, *overrides):
+        return config("maml", tmp_path / folder, "point_nav", "logger.backend=csv", f"iterations={iterations}",
+                      *overrides)
+
+    train(cfg("split", 4))
+    for step in (3, 4):
+        (tmp_path / "split" / "checkpoints" / f"step_{step}.safetensors").unlink()
+    train(cfg("split", 6, "resume=true"))
+    train(cfg("whole", 6))
+    logged, expected = logged_rows(tmp_path / "split"), logged_rows(tmp_path / "whole")
+    assert [step for step, _ in expected["time/learn_s"]] == list(range(1, 7))
+    assert any(name.startswith("train/") for name in expected)
+    assert logged == expected
+
+
 def test_resume_falls_back_past_a_truncated_checkpoint(tmp_path):
     from umrl.trainers.maml import train
 

@@ -116,7 +116,8 @@ def test_judge_gates_and_missing_parts():
     claim = Claim("a beats b and c", (ahead("a", "b"), ahead("a", "c")))
     per_seed = {"a": {0: curves(np.linspace(1, 2, 10))}, "b": {0: curves(np.zeros(10))}}
     verdict = judge(claim, "point_nav", per_seed)
-    assert verdict.verdict == "agrees" and verdict.missing == ("a ahead of c",)
+    assert verdict.verdict == "partly" and verdict.missing == ("a ahead of c",)  # the part it has agrees
+    assert [e.verdict for e in verdict.evidence] == ["agrees"]
     assert judge(claim, "point_nav", {}).verdict == "no cells"
     gated = next(iter(GATES))
     assert judge(claim, gated, per_seed).verdict == "not testable"

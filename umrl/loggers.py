@@ -16,6 +16,7 @@ from typing import Any
 
 from torchrl.record.loggers import Logger, get_logger
 
+from umrl.atomic_write import write_text_atomic
 from umrl.plain_config import to_container
 from umrl.validation import check_choice, check_name, check_writable_dir
 
@@ -72,14 +73,16 @@ def wandb_dir_default(root: str | os.PathLike) -> Iterator[None]:
 
 
 def make_logger(logger_cfg: Mapping, *, exp_name: str, job_type: str | None = None, config: Any = None,
-                log_dir: str | os.PathLike = ".") -> Logger | None:
+                log_dir: str | os.PathLike = ".", resume_step: int | None = None) -> Logger | None:
     """Build the TorchRL logger named by ``logger_cfg["backend"]`` and log ``config`` as hyperparameters.
 
     ``logger_cfg`` keys: ``backend`` (``wandb`` | ``csv`` | ``none``), optional ``project``, ``group``, ``mode``
     (wandb: ``offline`` by default, ``online`` to stream, ``disabled``; the ``WANDB_MODE`` environment variable wins).
     ``job_type`` names what the run is (the recipes pass their name: ``diayn``, ``maml``, ``vime``; the suite's
     report runs ``meta_test`` and ``report``); with ``group`` it is what wandb groups runs by.
-    CSV logs go to ``<log_dir>/csv/<exp_name>/``; wandb runs to ``<wandb_dir(log_dir)>/wandb`` (:func:`wandb_dir`:
+    CSV logs go to ``<log_dir>/csv/<exp_name>/``; with ``resume_step`` (a run continuing from its checkpoint at that
+    step) the rows a killed run logged past it are dropped first (:func:`drop_csv_rows_after`), so the files hold
+    what an uninterrupted run logs. wandb runs to ``<wandb_dir(log_dir)>/wandb`` (:func:`wandb_dir`:
     ``$WANDB_DIR`` if set, else the root of the output tree; recipes pass their ``output_dir``: nothing lands in the
     current directory).
 
@@ -93,6 +96,8 @@ def make_logger(logger_cfg: Mapping, *, exp_name: str, job_type: str | None = No
     if backend == "none":
         return None
     if backend == "csv":
+        if resume_step is not None:
+            drop_csv_rows_after(Path(log_dir) / "csv" / exp_name, resume_step)
         logger = get_logger("csv", logger_name=str(Path(log_dir) / "csv"), experiment_name=exp_name)
     else:
         mode = os.environ.get("WANDB_MODE", logger_cfg.get("mode", "offline"))
@@ -114,6 +119,28 @@ def make_logger(logger_cfg: Mapping, *, exp_name: str, job_type: str | None = No
     if config is not None:
         logger.log_hparams(to_container(config))
     return logger
+
+
+def drop_csv_rows_after(csv_dir: str | os.PathLike, step: int) -> int:
+    """Remove the rows logged past ``step`` from the scalar CSV files under ``csv_dir`` (TorchRL's ``CSVLogger``:
+    ``scalars/<name>.csv``, one ``step,value`` line per row); returns how many were removed. A last line without
+    its newline (a write cut by the kill) goes too. A file is rewritten atomically, and only when it loses a row.
+
+    >>> import tempfile
+    >>> folder = Path(tempfile.mkdtemp())
+    >>> (folder / "scalars").mkdir()
+    >>> _ = (folder / "scalars" / "loss.csv").write_text("1,0.5\\n2,0.4\\n3,0.3\\n")
+    >>> drop_csv_rows_after(folder, 2), (folder / "scalars" / "loss.csv").read_text()
+    (1, '1,0.5\\n2,0.4\\n')
+    """
+    removed = 0
+    for file in sorted((Path(csv_dir) / "scalars").rglob("*.csv")):
+        lines = file.read_text().splitlines(keepends=True)
+        kept = [line for line in lines if line.endswith("\n") and int(float(line.split(",", 1)[0])) <= step]
+        if len(kept) < len(lines):
+            write_text_atomic(file, "".join(kept))
+            removed += len(lines) - len(kept)
+    return removed
 
 
 def close_logger(logger: Logger | None) -> None:

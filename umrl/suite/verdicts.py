@@ -15,8 +15,9 @@ The rule (``docs/results/verdicts.md`` states it in the same words):
   pooled sign is not repeated on every seed). *undecided*: the interval holds 0.
 * **A claim.** *agrees* when every part agrees; *partly* when at least one part agrees or is partly and not every
   part agrees; *disagrees* when no part agrees or is partly and at least one disagrees; *undecided* when every part
-  is undecided. A claim counts only the parts whose methods have cells; the table names the ones without, and a
-  claim with no such part on an env gets no verdict there (``no cells``).
+  is undecided. A claim counts only the parts whose methods have cells; the table names the ones without. A claim
+  with parts lacking cells is at most *partly* (its other parts agreeing is not the claim agreeing), and a claim
+  with no part that has cells on an env gets no verdict there (``no cells``).
 * **Gates.** An env whose gate fails (:data:`GATES`: a condition without which the env tests no claim, decided on its
   results page) gets *not testable* for every claim, whatever its cells say.
 
@@ -213,7 +214,10 @@ def judge(claim: Claim, env: str, per_seed: Mapping[str, Mapping[int, np.ndarray
             missing.append(part.text)
     if not found:
         return ClaimVerdict(claim, env, "no cells", missing=tuple(missing), reason="no committed cells")
-    return ClaimVerdict(claim, env, claim_verdict([e.verdict for e in found]), tuple(found), tuple(missing))
+    verdict = claim_verdict([e.verdict for e in found])
+    if missing and verdict == "agrees":
+        verdict = "partly"
+    return ClaimVerdict(claim, env, verdict, tuple(found), tuple(missing))
 
 
 @dataclass

@@ -180,7 +180,7 @@ class Trainer:
         initial = self._setup()
         cfg = self.cfg
         self.logger = make_logger(cfg.logger, exp_name=cfg.logger.exp_name, job_type=self.name, config=cfg,
-                                  log_dir=self.output_dir)
+                                  log_dir=self.output_dir, resume_step=self.progress)
         self.is_set_up = True
         if initial:
             self.log(initial)
