@@ -76,6 +76,8 @@ WRITTEN_EARLIER = {
     "results/half_cheetah/uml_random_ref/seed2": "plan.md's HC-M1 row (seeds 0 and 1 are committed)",
     "results/ant/*_ref*/seed[012]": "plan.md's AN-D and AN-M rows (not run: the ant gate stopped them)",
     "outputs/suite/trained_skills": "point_nav.md's suite command of that section",
+    "outputs/suite/ref3_half_cheetah": "reference_half_cheetah.md's three-seed suite command before it",
+    "outputs/diayn/point_nav/seeds0-1-2/seed[012]": "results/README.md's point_nav DIAYN command (2 x 32) below it",
     f"{PLACEHOLDER}*": "a run the page names by a placeholder (`<dir>`, `<the 200 k DIAYN run>`, `<copy>`)",
 }
 """Paths the commands read that the repository does not hold, each with what writes it: a command reading one is
