@@ -32,7 +32,8 @@ for a suite config (``umrl suite`` or ``benchmarks/suite.py`` is its command lin
 
 Modules: :mod:`umrl.suite.plan` (jobs and their keys), :mod:`umrl.suite.report` (tables, figures, wandb),
 :mod:`umrl.suite.run` (:func:`run_suite`), :mod:`umrl.suite.verdicts` (the verdict rule over committed cells, a
-command: ``python -m umrl.suite.verdicts results/``). The suite plans and reports only: the jobs run through :mod:`umrl.launch`, what a cell computes and how results are
+command: ``python -m umrl.suite.verdicts results/``), :mod:`umrl.suite.export` (a suite's cells into that layout:
+``python -m umrl.suite.export <output_dir> <env> results/<env>``). The suite plans and reports only: the jobs run through :mod:`umrl.launch`, what a cell computes and how results are
 tabulated live in :mod:`umrl.metatest`. Jobs run as fresh worker processes (``launcher.workers`` at a time; their
 output goes to ``logs/<job>.log``), in this process (``launcher.workers=0``) or as Ray tasks when ``launcher.ray_address`` is set
 (``local`` starts a Ray instance on this machine). The local workers are plain subprocesses (no multiprocessing
