@@ -27,11 +27,12 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from umrl.atomic_write import write_text_atomic
+from umrl.metatest.cache import KEY_LENGTH
 from umrl.metatest.provenance import relative_path, resolve_recorded_path
 
 __all__ = ["export_cells", "exported_name"]
 
-_KEYED = re.compile(r"(?P<name>.+)-[0-9a-f]{8,}")
+_KEYED = re.compile(rf"(?P<name>.+)-[0-9a-f]{{{KEY_LENGTH}}}")  # <name>-<config_key>
 
 
 def exported_name(cell_csv: Path, suite_dir: Path, env: str) -> Path | None:
