@@ -50,14 +50,14 @@ def _step(path: Path) -> int:
 
 
 def test_committed_results_with_pt_names_resolve_to_their_highest_step_and_load():
-    """The highest step by number (``step_100.pt`` after ``step_90.pt``), read by the loaders as before."""
-    maml_run = REPO / "results" / "ant" / "oracle_gate" / "seed0"
+    """The highest step by number (``step_140.pt`` after ``step_80.pt``), read by the loaders as before."""
+    maml_run = REPO / "results" / "half_cheetah" / "uml_random_ref" / "seed0"
     files = list((maml_run / "checkpoints").glob("step_*.pt"))
     assert len(files) > 2 and resolve_checkpoint(maml_run) == max(files, key=_step)
     assert Checkpointer(maml_run / "checkpoints").all() == sorted(files, key=_step)
     saved = read_checkpoint(max(files, key=_step))
     policy, inner_lr = checkpoints.load_maml_policy(maml_run)
-    assert inner_lr == saved["meta"]["inner_lr"] and saved["meta"]["env"] == "ant"
+    assert inner_lr == saved["meta"]["inner_lr"] and saved["meta"]["env"] == "half_cheetah"
     assert all(torch.equal(value, saved["policy"][key]) for key, value in policy.state_dict().items())
     diayn_run = REPO / "results" / "point_nav" / "diayn_ref" / "seed0"
     _, num_skills, obs_dim = checkpoints.load_skill_policy(diayn_run)
