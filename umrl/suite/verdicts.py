@@ -52,8 +52,8 @@ VERDICTS = ("agrees", "partly", "disagrees", "undecided", "not testable")
 
 #: Envs whose gate fails: env → why no claim is testable there, and the page that shows it. Their cells are not judged.
 GATES = {
-    "ant": ("the oracle ends nearer its goals than a policy that never moves only adapted, from 200 of 375 MAML "
-            "iterations; the UML runs at that budget are not made",
+    "ant": (("the oracle ends nearer its goals than a policy that never moves only adapted, from 200 of 375 MAML "
+             "iterations; the UML runs at that budget are not made"),
             "docs/results/reference_ant.md"),
 }
 
