@@ -49,8 +49,9 @@ def _step(path: Path) -> int:
     return int(re.fullmatch(r"step_([0-9]+)\.pt", path.name).group(1))
 
 
-def test_committed_results_with_pt_names_resolve_to_their_highest_step_and_load():
-    """The highest step by number (``step_140.pt`` after ``step_80.pt``), read by the loaders as before."""
+def test_committed_results_with_pt_names_resolve_to_their_highest_step_and_load(tmp_path):
+    """The highest step by number (``step_140.pt`` after ``step_80.pt``), read by the loaders as before: a committed
+    MAML run, and committed DIAYN skills renamed as the exports before ``.safetensors`` named them."""
     maml_run = REPO / "results" / "half_cheetah" / "uml_random_ref" / "seed0"
     files = list((maml_run / "checkpoints").glob("step_*.pt"))
     assert len(files) > 2 and resolve_checkpoint(maml_run) == max(files, key=_step)
@@ -59,7 +60,12 @@ def test_committed_results_with_pt_names_resolve_to_their_highest_step_and_load(
     policy, inner_lr = checkpoints.load_maml_policy(maml_run)
     assert inner_lr == saved["meta"]["inner_lr"] and saved["meta"]["env"] == "half_cheetah"
     assert all(torch.equal(value, saved["policy"][key]) for key, value in policy.state_dict().items())
-    diayn_run = REPO / "results" / "point_nav" / "diayn_ref" / "seed0"
+    skills = REPO / "results" / "point_nav" / "diayn_2x32" / "seed0" / "checkpoints"
+    diayn_run = tmp_path / "skills"
+    (diayn_run / "checkpoints").mkdir(parents=True)
+    for name in ("config.yaml", "step_50000.safetensors"):
+        (diayn_run / "checkpoints" / name).write_bytes((skills / name).read_bytes())
+    assert _rename_to_pt(diayn_run) == ["checkpoints/step_50000.pt"]
     _, num_skills, obs_dim = checkpoints.load_skill_policy(diayn_run)
     saved = read_checkpoint(resolve_checkpoint(diayn_run))
     assert resolve_checkpoint(diayn_run).suffix == ".pt" and (num_skills, obs_dim) == (saved["meta"]["num_skills"], 2)
