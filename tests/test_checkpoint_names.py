@@ -2,6 +2,7 @@
 same files ``step_<N>.pt`` (the committed results, a run in progress) read, resumed and pruned as before."""
 import importlib
 import re
+import shutil
 from pathlib import Path
 
 import pytest
@@ -60,11 +61,7 @@ def test_committed_results_with_pt_names_resolve_to_their_highest_step_and_load(
     policy, inner_lr = checkpoints.load_maml_policy(maml_run)
     assert inner_lr == saved["meta"]["inner_lr"] and saved["meta"]["env"] == "half_cheetah"
     assert all(torch.equal(value, saved["policy"][key]) for key, value in policy.state_dict().items())
-    skills = REPO / "results" / "point_nav" / "diayn_2x32" / "seed0" / "checkpoints"
-    diayn_run = tmp_path / "skills"
-    (diayn_run / "checkpoints").mkdir(parents=True)
-    for name in ("config.yaml", "step_50000.safetensors"):
-        (diayn_run / "checkpoints" / name).write_bytes((skills / name).read_bytes())
+    diayn_run = Path(shutil.copytree(REPO / "results" / "point_nav" / "diayn_2x32" / "seed0", tmp_path / "skills"))
     assert _rename_to_pt(diayn_run) == ["checkpoints/step_50000.pt"]
     _, num_skills, obs_dim = checkpoints.load_skill_policy(diayn_run)
     saved = read_checkpoint(resolve_checkpoint(diayn_run))
