@@ -12,6 +12,7 @@ from umrl.objectives.policy_gradient import (
     trajectory_mask,
     vpg_loss,
 )
+from umrl.process import torch_threads
 
 
 def _batch(T=3, N=4, H=6, obs_dim=2, seed=0, end_early=True):
@@ -66,6 +67,22 @@ def test_baseline_is_exact_when_targets_are_linear_in_features_and_per_task():
     targets = (feats.double() @ w.unsqueeze(-3)).float()
     fitted = fit_linear_baseline(feats, targets, torch.ones(3, 4, 6, dtype=torch.bool), reg_coeff=1e-10)
     torch.testing.assert_close(fitted, targets, rtol=1e-3, atol=1e-3)
+
+
+def test_baseline_fit_at_ant_width_is_exact_on_two_threads():
+    """214 features (ant's): torch's multi-threaded LU returned wrong solutions or failed at this width on an AMD
+    EPYC; the fit solves on one thread, so a 2-thread run gets the 1-thread fit exactly."""
+    gen = torch.Generator().manual_seed(0)
+    feats = torch.randn(5, 20, 20, 214, generator=gen, dtype=torch.float64)
+    targets = feats @ torch.randn(5, 1, 214, 1, generator=gen, dtype=torch.float64)
+    mask = torch.ones(5, 20, 20, dtype=torch.bool)
+    with torch_threads(1):
+        one_thread = fit_linear_baseline(feats, targets, mask, reg_coeff=1e-10)
+    with torch_threads(2):
+        two_threads = fit_linear_baseline(feats, targets, mask, reg_coeff=1e-10)
+        assert torch.get_num_threads() == 2
+    torch.testing.assert_close(one_thread, targets)
+    assert torch.equal(two_threads, one_thread)
 
 
 def test_baseline_fit_raises_instead_of_returning_garbage():

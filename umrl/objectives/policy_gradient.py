@@ -34,6 +34,7 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.objectives.value.functional import vec_generalized_advantage_estimate
 
+from umrl.process import torch_threads
 from umrl.trajectories import trajectory_mask
 
 #: TorchRL's fast GAE drops the terms of its ``(γλ)^k`` series below this threshold (its ``thr``); with ``γλ`` below
@@ -77,7 +78,9 @@ def fit_linear_baseline(
 
     Solved in float64 from the normal equations ``(XᵀX + c I) w = Xᵀy``; if the solution is not finite the ridge
     ``c`` grows ×10 (at most ``max_tries`` times) and then a ``FloatingPointError`` is raised — never a silent
-    garbage baseline.
+    garbage baseline. On the CPU the solve runs on one torch thread: torch 2.13's multi-threaded LU (oneMKL) returns
+    wrong solutions or fails ("Parameter 6 was incorrect on entry to DLASWP") from about 150 features (ant's 214) on
+    an AMD EPYC, and one thread is what every committed run used.
 
     Args:
         features: ``[..., N, H, F]``.
@@ -102,7 +105,8 @@ def fit_linear_baseline(
     eye = torch.eye(num_features, dtype=torch.float64, device=x.device)
     coeff = reg_coeff
     for _ in range(max_tries):
-        weights = torch.linalg.solve(xtx + coeff * eye, xty)
+        with torch_threads(1 if x.device.type == "cpu" else None):
+            weights = torch.linalg.solve(xtx + coeff * eye, xty)
         if torch.isfinite(weights).all():
             return (features.to(torch.float64) @ weights.unsqueeze(-3)).to(features.dtype)
         coeff *= 10
