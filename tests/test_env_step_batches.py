@@ -1,5 +1,7 @@
 """Meta-test batches of a fixed number of env steps (``protocol.env_steps``, the MAML reference code's sampler):
 which episodes are kept, how many rounds run, the returns averaged over the kept episodes, and the bad values."""
+from unittest import mock
+
 import pytest
 import torch
 from script_loading import compose_config
@@ -12,6 +14,7 @@ from umrl.metatest import AdaptationConfig, TaskAdapter, make_eval_env
 from umrl.modules.policy import make_gaussian_policy
 from umrl.objectives.policy_gradient import episode_mean, episode_returns
 from umrl.rollout import collect_env_steps, first_env_steps
+from umrl.trajectories import pack_valid_steps
 
 NEAR = torch.tensor([[0.2, 0.0], [0.4, 0.0]])  # on the straight policy's path: its episodes end after 4 and 8 steps
 FAR = torch.tensor([[5.0, 5.0], [-5.0, 5.0]])  # out of reach in the horizon: every episode runs to the end
@@ -109,6 +112,7 @@ def _meta_batch(sample_by: str, horizon: int = 20, per_task: int = 4):
 
     from umrl.objectives.maml import MAMLLoss
     from umrl.trainers import compose
+    from umrl.trainers import maml as maml_trainer
     from umrl.trainers.maml import meta_batch
 
     cfg = validate(compose("maml", [f"sample_by={sample_by}", f"env.horizon={horizon}",
@@ -118,9 +122,14 @@ def _meta_batch(sample_by: str, horizon: int = 20, per_task: int = 4):
     policy = _straight_policy()
     loss = MAMLLoss(policy, inner_lr=1e-9)  # the adapted policy stays the straight one: same episode lengths
     loss.make_value_estimator(gamma=0.99, lmbda=1.0, normalize=True)
-    support, _, query, _ = meta_batch(cfg, proposal, policy, loss, torch.Generator().manual_seed(0))
+    trajectories = []  # collect_batch's batches, before the learning step packs them
+    with mock.patch.object(maml_trainer, "learning_batch",
+                           side_effect=lambda loss, batch: trajectories.append(batch) or pack_valid_steps(batch)):
+        support, _, query, _ = meta_batch(cfg, proposal, policy, loss, torch.Generator().manual_seed(0))
     env.close()
-    return support, query
+    for packed, batch in zip((support, query), trajectories):
+        assert packed is pack_valid_steps(batch) or (packed == pack_valid_steps(batch)).all()
+    return trajectories
 
 
 def test_maml_meta_training_samples_env_steps_per_task_and_early_ends_add_trajectories():
@@ -134,3 +143,45 @@ def test_maml_meta_training_samples_env_steps_per_task_and_early_ends_add_trajec
     support, query = _meta_batch("trajectories")
     assert support["mask"].sum(-1).tolist() == [[4] * 4, [8] * 4, [20] * 4]  # the option: exactly N trajectories
     assert query.shape == support.shape == (3, 4, 20)
+
+
+def test_packing_moves_each_tasks_valid_steps_in_order_into_fewer_rows():
+    batch = _batch_with_lengths([[4] * 20, [8] * 10 + [0] * 10, [20] * 4 + [0] * 16], horizon=20)
+    packed = pack_valid_steps(batch)
+    assert packed.shape == (3, 4, 20)  # 80 valid steps per task fill 4 rows of 20 (from 20 rows)
+    assert packed["mask"].all()
+    for t in range(3):
+        torch.testing.assert_close(packed["index"][t][packed["mask"][t]], batch["index"][t][batch["mask"][t]])
+    ragged = pack_valid_steps(_batch_with_lengths([[3, 3, 3, 3], [1, 0, 0, 0]], horizon=4))
+    assert ragged.shape == (2, 3, 4) and ragged["mask"].sum((-2, -1)).tolist() == [12, 1]
+    full = _batch_with_lengths([[10, 10, 10], [10, 10, 10]])
+    assert pack_valid_steps(full) is full  # full episodes: nothing to drop, the batch as it was
+    with pytest.raises(ValueError, match=r"batch must be \[T, M, H\]"):
+        pack_valid_steps(full[0])
+
+
+def test_maml_loss_gradient_and_analytic_hvp_are_the_same_on_the_packed_batch():
+    """The learning step computes on the packed batch (trainers.maml.learning_batch): every term is a per-task mean
+    over valid steps, so the loss, its gradient, the KL Hessian-vector products and the returns it reports are the
+    unpacked batch's up to float rounding, here with 20 : 10 : 4 episodes per task (a 5 x smaller batch)."""
+    from umrl.objectives.maml import MAMLLoss
+    from umrl.optim.meta_hvp import AnalyticHVP
+
+    support, query = _meta_batch("env_steps")
+    packed = [pack_valid_steps(b) for b in (support, query)]
+    assert packed[0].shape == (3, 4, 20) and support.shape == (3, 20, 20)
+    loss = MAMLLoss(make_gaussian_policy(2, 2, hidden=(8,), seed=0), inner_lr=0.1)
+    vector = torch.randn(sum(p.numel() for p in loss.policy.parameters()), generator=torch.Generator().manual_seed(1))
+    results = []
+    for s, q in ((support, query), packed):
+        out = loss(loss.pack(s, q))
+        grads = torch.autograd.grad(out["loss_objective"], list(loss.policy.parameters()))
+        hvp = AnalyticHVP(loss).product(s, q)
+        results.append((out.detach(), torch.cat([g.reshape(-1) for g in grads]), hvp(vector)))
+    (out, grad, product), (packed_out, packed_grad, packed_product) = results
+    for key in ("loss_objective", "kl", "inner_loss", "return_pre", "return_post"):
+        torch.testing.assert_close(packed_out[key], out[key], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(packed_grad, grad, rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(packed_product, product, rtol=1e-4, atol=1e-6)
+    # the returns are means over each task's episodes, empty padded rows left out (the trainer's return_pre)
+    torch.testing.assert_close(out["return_pre"], episode_mean(episode_returns(support), support).mean())

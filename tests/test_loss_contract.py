@@ -255,9 +255,9 @@ def _fields(loss_or_estimator):
 
 
 MAML_KEYS = {"support": "pre", "query": "post", "adapted": "phi", "action": "act", "action_log_prob": "act_lp",
-             "advantage": "adv", "loc": "mu", "scale": "sigma", "mask": "valid", "reward": "rew"}
-# the value estimator's own keys (the loss forwards those it shares: advantage, mask, reward)
-ESTIMATOR_KEYS = {"observation": "obs", "step_count": "t", "done": "end", "value_target": "ret", "value": "baseline"}
+             "advantage": "adv", "loc": "mu", "scale": "sigma", "mask": "valid", "reward": "rew", "done": "end"}
+# the value estimator's own keys (the loss forwards those it shares: advantage, mask, reward, done)
+ESTIMATOR_KEYS = {"observation": "obs", "step_count": "t", "value_target": "ret", "value": "baseline"}
 # what collection writes, under the names above
 COLLECTED = {"observation": "obs", ("next", "observation"): ("next", "obs"), "step_count": "t",
              ("next", "step_count"): ("next", "t"), "action": "act", "action_log_prob": "act_lp", "loc": "mu",
@@ -310,7 +310,7 @@ def _maml_step(renamed, hvp):
 def test_maml_with_every_key_renamed_collects_estimates_and_trains_as_with_the_defaults(hvp):
     assert _fields(MAMLLoss) == set(MAML_KEYS)
     loss = MAMLLoss(make_gaussian_policy(OBS, ACT, hidden=(8,))).make_value_estimator()
-    assert _fields(loss.value_estimator) == {"advantage", "mask", "reward"} | set(ESTIMATOR_KEYS)
+    assert _fields(loss.value_estimator) == {"advantage", "mask", "reward", "done"} | set(ESTIMATOR_KEYS)
     batch, out, info, params = _maml_step(True, hvp)
     default_batch, default_out, default_info, default_params = _maml_step(False, hvp)
     assert set(batch.keys()) == {"pre", "post"}
@@ -341,7 +341,7 @@ def _importance_sampling_step(renamed):
     names = {k: MAML_KEYS[k] for k in _fields(ImportanceSamplingLoss)}
     if renamed:
         loss.set_keys(**names)
-        loss.value_estimator.set_keys(reward="rew", **ESTIMATOR_KEYS)
+        loss.value_estimator.set_keys(reward="rew", done="end", **ESTIMATOR_KEYS)
     batch = loss.value_estimator(collect_batch()[0])  # one task's trajectories [N, H]
     batch.set(names["action_log_prob"] if renamed else "action_log_prob",
               batch.get(names["action_log_prob"] if renamed else "action_log_prob") - 0.1)

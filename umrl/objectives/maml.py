@@ -115,7 +115,9 @@ class MAMLLoss(LossModule):
             adapted: optional adapted parameters ``[T]`` inside the input. Default ``"adapted"``.
             action, action_log_prob, advantage, loc, scale, mask: inside each batch (the log-prob, loc and scale of
                 the collecting policy: query only). Defaults are their names.
-            reward: under ``"next"`` in each batch (the diagnostics' returns). Default ``"reward"``.
+            reward, done: under ``"next"`` in each batch (the diagnostics' returns: a ``done`` ends each
+                episode, as the env's own end or the horizon's ``StepCounter`` marks it; optional, without it each
+                row holding a valid step is one episode). Defaults ``"reward"``, ``"done"``.
         """
 
         support: NestedKey = "support"
@@ -128,6 +130,7 @@ class MAMLLoss(LossModule):
         scale: NestedKey = "scale"
         mask: NestedKey = "mask"
         reward: NestedKey = "reward"
+        done: NestedKey = "done"
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
@@ -162,14 +165,15 @@ class MAMLLoss(LossModule):
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         if self._value_estimator is not None:
             keys = self.tensor_keys
-            self._value_estimator.set_keys(advantage=keys.advantage, mask=keys.mask, reward=keys.reward)
+            self._value_estimator.set_keys(advantage=keys.advantage, mask=keys.mask, reward=keys.reward,
+                                           done=keys.done)
 
     def make_value_estimator(self, value_type=None, **hyperparams) -> MAMLLoss:
         """Set :attr:`value_estimator`: rllab's linear feature baseline with GAE (``value_type`` None or
         ``ValueEstimators.GAE``); ``hyperparams``: ``gamma``, ``lmbda``, ``normalize`` of
         :class:`~umrl.objectives.advantage.LinearBaselineGAE` (MAML-RL's 0.99, 1.0, true by default). The loss's
-        ``advantage``, ``mask`` and ``reward`` keys are the estimator's (:meth:`set_keys` renames them in both); its
-        own keys (``observation``, ``step_count``, ``done``, ...) are renamed with ``value_estimator.set_keys``."""
+        ``advantage``, ``mask``, ``reward`` and ``done`` keys are the estimator's (:meth:`set_keys` renames them in
+        both); its own keys (``observation``, ``step_count``, ...) are renamed with ``value_estimator.set_keys``."""
         check_value_type(value_type)
         hyperparams.pop("device", None)  # TorchRL's default construction passes it; the baseline fits on the data's
         self._value_estimator = LinearBaselineGAE(**hyperparams)
@@ -180,7 +184,8 @@ class MAMLLoss(LossModule):
     def in_keys(self) -> list[NestedKey]:
         """Every key :meth:`forward` reads (besides the optional ``adapted``), nested under support / query."""
         keys = self.tensor_keys
-        shared = [keys.action, keys.advantage, keys.mask, ("next", keys.reward), *self.functional_policy.net.in_keys]
+        shared = [keys.action, keys.advantage, keys.mask, ("next", keys.reward), ("next", keys.done),
+                  *self.functional_policy.net.in_keys]
         query_only = [keys.action_log_prob, keys.loc, keys.scale]
         return ([unravel_key((keys.support, k)) for k in shared]
                 + [unravel_key((keys.query, k)) for k in [*shared, *query_only]])
@@ -276,9 +281,15 @@ class MAMLLoss(LossModule):
         return surrogate, kl, ratio
 
     def _episode_return(self, td: TensorDictBase) -> torch.Tensor:
-        """Mean undiscounted return of the batch's first episodes (the mask's valid steps)."""
+        """Mean undiscounted return of the batch's episodes, over each task's episodes (its valid steps' reward over
+        its valid ``done`` flags: rows padded empty count for none, and a packed batch's rows, which are not
+        episodes, give the same), then over tasks. A batch without ``done`` counts its rows that hold a valid step."""
         keys = self.tensor_keys
-        return (td.get(("next", keys.reward)).squeeze(-1) * td.get(keys.mask)).sum(-1).mean()
+        mask = td.get(keys.mask)
+        reward = (td.get(("next", keys.reward)).squeeze(-1) * mask).sum((-2, -1))
+        done = td.get(("next", keys.done), None)
+        episodes = mask.any(-1).sum(-1) if done is None else (done.squeeze(-1) & mask).sum((-2, -1))
+        return (reward / episodes.clamp_min(1)).mean()
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         keys = self.tensor_keys

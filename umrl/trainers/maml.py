@@ -6,7 +6,8 @@ clipped to [-a, a]² (``env.arena``, 1.0 when null); see :mod:`umrl.proposals`.
 One meta-iteration (:meth:`MAMLTrainer.step`): ``proposal.resample`` picks T tasks -> collect each task's
 pre-update batch with θ (``sample_by=env_steps``: its first episodes up to N × H env steps,
 :func:`umrl.rollout.collect_env_steps`; ``trajectories``: N trajectories, :func:`umrl.rollout.collect`) -> the
-loss's value estimator (linear baseline + GAE) -> ``MAMLLoss.adapt`` (one PG step per task) -> collect the
+loss's value estimator (linear baseline + GAE) -> the valid steps packed into fewer rows where episodes ended early
+(:func:`learning_batch`) -> ``MAMLLoss.adapt`` (one PG step per task) -> collect the
 post-update batches the same way with every task's adapted parameters (one
 batched policy call per env step) -> :class:`~umrl.optim.trpo.TRPOStep` on ``MAMLLoss``'s forward (the query
 surrogate through the inner step), with the KL Hessian-vector product strategy ``trpo.hvp`` names
@@ -57,9 +58,10 @@ from umrl.resume_state import env_state, load_env_state
 from umrl.rng import rng_state, seed_everything, set_rng_state
 from umrl.rollout import NonFiniteActions, check_cudagraphs, collect, collect_env_steps
 from umrl.trainers.base import Trainer
+from umrl.trajectories import pack_valid_steps
 from umrl.validation import InvalidValue, check_not_diverged, resolve_device
 
-__all__ = ["MAMLTrainer", "build", "collect_batch", "inner_step", "meta_batch", "meta_step", "train"]
+__all__ = ["MAMLTrainer", "build", "collect_batch", "inner_step", "learning_batch", "meta_batch", "meta_step", "train"]
 
 
 def collect_batch(cfg: DictConfig, proposal, policy, loss: MAMLLoss, adapted: TensorDict | None = None
@@ -99,14 +101,21 @@ def inner_step(loss: MAMLLoss, support: TensorDictBase) -> tuple[TensorDict, flo
     return adapted, device_clock(device) - start
 
 
+def learning_batch(loss: MAMLLoss, batch: TensorDictBase) -> TensorDictBase:
+    """What the inner step and the meta-step compute on: ``batch``'s valid steps packed into fewer rows where its
+    episodes end early (:func:`umrl.trajectories.pack_valid_steps`; a batch of full episodes unchanged)."""
+    return pack_valid_steps(batch, loss.tensor_keys.mask)
+
+
 def meta_batch(cfg: DictConfig, proposal, policy, loss: MAMLLoss, generator: torch.Generator):
     """A fresh meta-batch ``(support, adapted, query, inner_s)``: ``proposal.resample`` draws the tasks, then
     :func:`collect_batch` with θ, :func:`inner_step` and :func:`collect_batch` with the adapted parameters
-    (what :meth:`MAMLTrainer.step` does before its meta-step, without its hooks)."""
+    (what :meth:`MAMLTrainer.step` does before its meta-step, without its hooks); ``support`` and ``query`` as the
+    learning step takes them (:func:`learning_batch`)."""
     proposal.resample(generator)
-    support = collect_batch(cfg, proposal, policy, loss)
+    support = learning_batch(loss, collect_batch(cfg, proposal, policy, loss))
     adapted, inner_s = inner_step(loss, support)
-    return support, adapted, collect_batch(cfg, proposal, policy, loss, adapted), inner_s
+    return support, adapted, learning_batch(loss, collect_batch(cfg, proposal, policy, loss, adapted)), inner_s
 
 
 def _iteration_metrics(support: TensorDictBase, query: TensorDictBase, policy, info: dict[str, float], *,
@@ -271,12 +280,14 @@ class MAMLTrainer(Trainer):
         with self.phase("collect"):
             support = collect_batch(cfg, proposal, policy, loss)
         with self.phase("inner_step"):
-            adapted, inner_s = inner_step(loss, support)
+            learn_support = learning_batch(loss, support)
+            adapted, inner_s = inner_step(loss, learn_support)
         with self.phase("collect"):
             query = collect_batch(cfg, proposal, policy, loss, adapted)
+            learn_query = learning_batch(loss, query)
         collected = device_clock(device)
         with self.phase("meta_step"):
-            info = meta_step(cfg, loss, self.trpo, support, query, adapted)
+            info = meta_step(cfg, loss, self.trpo, learn_support, learn_query, adapted)
         metrics = _iteration_metrics(support, query, policy, info, batch_s=collected - start, inner_s=inner_s,
                                      meta_step_s=device_clock(device) - collected)
         self.iteration += 1
