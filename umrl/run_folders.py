@@ -7,7 +7,8 @@ seed's ``seed<s>/checkpoints/``).
 
 - A fresh run (``resume=false``) takes the first folder after the family's latest run that it can lock
   (:mod:`umrl.folder_lock`) and that holds no run: two runs started at once lock different folders.
-- ``resume=true`` continues the family's latest run (the folder itself when none holds a run yet).
+- ``resume=true`` continues the family's latest run. When none holds a run yet it names the folder itself, and the
+  trainer then stops with a ``FileNotFoundError`` (nothing to resume: run once without ``resume=true``).
 - MAML's ``proposal=diayn`` with its default ``diayn_checkpoint`` reads the latest run of that DIAYN family.
 
 An ``output_dir`` (or ``diayn_checkpoint``) the command line names is used as it is: a fresh run into a folder
