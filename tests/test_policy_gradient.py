@@ -3,6 +3,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
+from umrl.objectives import policy_gradient
 from umrl.objectives.policy_gradient import (
     baseline_features,
     compute_advantages,
@@ -57,6 +58,28 @@ def test_advantages_with_lambda_one_are_returns_minus_baseline():
     torch.testing.assert_close(td["value_target"].squeeze(-1), expected)
     torch.testing.assert_close(td["advantage"], (td["value_target"] - td["state_value"]) * mask.unsqueeze(-1))
     assert (td["state_value"][0, 0, 3:] == 0).all()
+
+
+def test_gae_runs_the_masked_steps_after_an_episode_as_one_segment(monkeypatch):
+    """Rows of one-step episodes (a goal at the start), their auto-reset episodes done at every step too: the GAE gets
+    two segments per row (the episode, then the masked rest), not one per masked step, which TorchRL pads to the
+    longest segment; the advantages are the loop's."""
+    td = _batch(T=2, N=3, H=50)
+    td["next", "done"][0] = True
+    segments = []
+    original = policy_gradient.vec_generalized_advantage_estimate
+
+    def counting(*args, **kwargs):
+        ends = args[5]
+        segments.append(int((ends | (torch.arange(ends.shape[-2]) == ends.shape[-2] - 1).unsqueeze(-1)).sum()))
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(policy_gradient, "vec_generalized_advantage_estimate", counting)
+    td = compute_advantages(td, gamma=0.9, lmbda=1.0, normalize=False)
+    assert segments == [2 * 3 + 3] * 2  # task 0: 2 per row (50 per row before); task 1: its whole rows
+    mask = td["mask"]
+    expected = _returns_loop(td["next", "reward"].squeeze(-1), mask.float(), 0.9)
+    torch.testing.assert_close(td["value_target"].squeeze(-1), expected)
 
 
 def test_baseline_is_exact_when_targets_are_linear_in_features_and_per_task():

@@ -167,7 +167,12 @@ def compute_advantages(
         td.set(mask_key, mask)
     valid = mask.unsqueeze(-1)
     reward = td.get(("next", reward_key)) * valid
-    ends = done | ~valid  # every step after the first episode is its own (zero-reward) end
+    # the first episode ends at its done; the masked steps after it (zero reward, zero value) run as one segment to the
+    # row's end: TorchRL's GAE pads every segment to the longest, so one segment per masked step (their own done or
+    # not) cost up to H x the batch (60 GB for point_nav's oracle where episodes end after one step)
+    row_end = torch.zeros_like(valid)
+    row_end[..., -1, :] = True
+    ends = (done & valid) | (~valid & row_end)
     zeros = torch.zeros_like(reward)
     _, returns = _gae(gamma, 1.0, zeros, zeros, reward, ends)
     features = baseline_features(td, time_scale=time_scale, observation_key=observation_key,
