@@ -122,13 +122,12 @@ def _meta_batch(sample_by: str, horizon: int = 20, per_task: int = 4):
     policy = _straight_policy()
     loss = MAMLLoss(policy, inner_lr=1e-9)  # the adapted policy stays the straight one: same episode lengths
     loss.make_value_estimator(gamma=0.99, lmbda=1.0, normalize=True)
-    trajectories = []  # collect_batch's batches, before the learning step packs them
-    with mock.patch.object(maml_trainer, "learning_batch",
-                           side_effect=lambda loss, batch: trajectories.append(batch) or pack_valid_steps(batch)):
+    with mock.patch.object(maml_trainer, "learning_batch", wraps=maml_trainer.learning_batch) as learning_batch:
         support, _, query, _ = meta_batch(cfg, proposal, policy, loss, torch.Generator().manual_seed(0))
     env.close()
-    for packed, batch in zip((support, query), trajectories):
-        assert packed is pack_valid_steps(batch) or (packed == pack_valid_steps(batch)).all()
+    trajectories = [call.args[1] for call in learning_batch.call_args_list]  # collect_batch's, before packing
+    for packed, batch in zip((support, query), trajectories, strict=True):
+        assert (packed == pack_valid_steps(batch)).all()
     return trajectories
 
 
