@@ -169,7 +169,7 @@ def compute_advantages(
     reward = td.get(("next", reward_key)) * valid
     # the first episode ends at its done; the masked steps after it (zero reward, zero value) run as one segment to the
     # row's end: TorchRL's GAE pads every segment to the longest, so one segment per masked step (their own done or
-    # not) cost up to H x the batch (60 GB for point_nav's oracle where episodes end after one step)
+    # not) cost up to H x the batch (over 24 GB + 24 GB of swap for point_nav's oracle with one-step episodes)
     row_end = torch.zeros_like(valid)
     row_end[..., -1, :] = True
     ends = (done & valid) | (~valid & row_end)
