@@ -77,6 +77,10 @@ WRITTEN_EARLIER = {
     "results/ant/*_ref*/seed[012]": "plan.md's AN-D and AN-M rows (not run: the ant gate stopped them)",
     "outputs/suite/trained_skills": "point_nav.md's suite command of that section",
     "outputs/suite/ref3_half_cheetah": "reference_half_cheetah.md's three-seed suite command before it",
+    "outputs/suite/ref3_point_nav": "reference_point_nav.md's three-seed suite command before it",
+    "outputs/suite/ref3_point_nav_along": "reference_point_nav.md's along-meta-training suite command before it",
+    "outputs/suite/pn_skills_2x300": "reference_point_nav.md's 2 x 300 skills suite command before it",
+    "/tmp/pn_earlier/*": "reference_point_nav.md's git archive of the earlier defaults' cells (a019296)",
     "outputs/diayn/point_nav/seeds0-1-2/seed[012]": "results/README.md's point_nav DIAYN command (2 x 32) below it",
     f"{PLACEHOLDER}*": "a run the page names by a placeholder (`<dir>`, `<the 200 k DIAYN run>`, `<copy>`)",
 }

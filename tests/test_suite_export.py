@@ -52,6 +52,15 @@ def test_export_of_some_methods(suite, tmp_path, capsys):
     assert sorted(p.name for p in (tmp_path / "out").rglob("*.csv")) == ["scratch.csv", "scratch.csv"]
 
 
+def test_export_of_the_ablation_alone(suite, tmp_path):
+    s, _ = suite
+    main([str(s), "pn", str(tmp_path / "out"), "--parts", "ablation"])
+    assert sorted(p.relative_to(tmp_path / "out").as_posix() for p in (tmp_path / "out").rglob("*.csv")) == [
+        "along_meta_training/seed0/oracle/iter20.csv", "along_meta_training/seed0/scratch.csv"]
+    with pytest.raises(ValueError, match=r"parts=\['cell'\]; accepted: one or more of \['ablation', 'cells'\]"):
+        export_cells(s, "pn", tmp_path / "out2", parts=["cell"])
+
+
 def test_two_keys_for_one_cell_are_refused_before_copying(suite, tmp_path):
     s, _ = suite
     cell(s / "cells/pn/oracle/seed0-fedcba987654.csv")

@@ -164,6 +164,6 @@ def test_committed_point_nav_cells_give_the_pages_verdicts():
     """The labels docs/results/verdicts.md and the README print for point_nav, re-derived from results/."""
     per_seed = load_cells(REPO / "results")["point_nav"].per_seed
     labels = [judge(claim, "point_nav", per_seed).verdict for claim in CLAIMS]
-    assert labels == ["agrees", "disagrees", "partly", "partly"]
+    assert labels == ["undecided", "partly", "partly", "partly"]
     oracle = judge(CLAIMS[3], "point_nav", per_seed).evidence[0]
-    assert oracle.short() == "+50.9 [0.8, 103.7]" and oracle.verdict == "partly"
+    assert oracle.short() == "+404.0 [360.1, 447.9]" and oracle.verdict == "agrees"

@@ -14,7 +14,9 @@ Command::
 
     python -m umrl.suite.export outputs/suite/ref3_half_cheetah half_cheetah results/half_cheetah --methods uml_diayn
 
-Only finished cells (a ``.json`` beside the CSV) are exported; two cells with one name and different keys (a
+``--parts ablation`` exports only the ablation's cells (a suite run for them alone keeps its main cells cheap, at
+``protocol.num_steps=1``, and those must not overwrite the real ones). Only finished cells (a ``.json`` beside the
+CSV) are exported; two cells with one name and different keys (a
 folder holding runs of two configs or code versions) are refused, naming both, before anything is copied.
 """
 from __future__ import annotations
@@ -30,7 +32,10 @@ from umrl.atomic_write import write_text_atomic
 from umrl.metatest.cache import KEY_LENGTH
 from umrl.metatest.provenance import relative_path, resolve_recorded_path
 
-__all__ = ["export_cells", "exported_name"]
+__all__ = ["PARTS", "export_cells", "exported_name"]
+
+#: The parts of a suite folder :func:`export_cells` can copy: the main cells and the meta-training ablation's.
+PARTS = {"cells": "meta_test_ref", "ablation": "along_meta_training"}
 
 _KEYED = re.compile(rf"(?P<name>.+)-[0-9a-f]{{{KEY_LENGTH}}}")  # <name>-<config_key>
 
@@ -50,21 +55,26 @@ def exported_name(cell_csv: Path, suite_dir: Path, env: str) -> Path | None:
     name = keyed["name"]
     if parts[0] == "cells" and len(parts) == 4:
         seed, _, schedule = name.partition(".")
-        return Path("meta_test_ref", seed, parts[2] + (f".{schedule}" if schedule else "") + ".csv")
+        return Path(PARTS["cells"], seed, parts[2] + (f".{schedule}" if schedule else "") + ".csv")
     if parts[0] == "ablation" and len(parts) == 5:
-        return Path("along_meta_training", parts[3], parts[2], f"{name}.csv")
+        return Path(PARTS["ablation"], parts[3], parts[2], f"{name}.csv")
     if parts[0] == "ablation" and len(parts) == 4:
-        return Path("along_meta_training", name, f"{parts[2]}.csv")
+        return Path(PARTS["ablation"], name, f"{parts[2]}.csv")
     return None
 
 
-def export_cells(suite_dir: str | Path, env: str, dst: str | Path, methods: Iterable[str] | None = None) -> list[Path]:
-    """Copy the finished cells of ``env`` (of ``methods`` only, if given) from the suite folder ``suite_dir`` to
-    ``dst``; returns the CSV files written. Raises ``ValueError`` naming both files when two cells map to one name."""
-    suite_dir, dst = Path(suite_dir), Path(dst)
+def export_cells(suite_dir: str | Path, env: str, dst: str | Path, methods: Iterable[str] | None = None,
+                 parts: Iterable[str] = tuple(PARTS)) -> list[Path]:
+    """Copy the finished cells of ``env`` (of ``methods`` only, if given; of the :data:`PARTS` named in ``parts``)
+    from the suite folder ``suite_dir`` to ``dst``; returns the CSV files written. Raises ``ValueError`` naming both
+    files when two cells map to one name, or naming a part that is not one of :data:`PARTS`."""
+    suite_dir, dst, parts = Path(suite_dir), Path(dst), list(parts)
+    unknown = [part for part in parts if part not in PARTS]
+    if unknown or not parts:
+        raise ValueError(f"export: parts={parts}; accepted: one or more of {sorted(PARTS)}")
     wanted = None if methods is None else set(methods)
     plan: dict[Path, Path] = {}
-    for csv in sorted([*suite_dir.glob(f"cells/{env}/**/*.csv"), *suite_dir.glob(f"ablation/{env}/**/*.csv")]):
+    for csv in sorted(path for part in parts for path in suite_dir.glob(f"{part}/{env}/**/*.csv")):
         target = exported_name(csv, suite_dir, env)
         method = csv.relative_to(suite_dir).parts[2]
         if target is None or not csv.with_suffix(".json").is_file() or (wanted is not None and method not in wanted):
@@ -92,8 +102,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("env", help="the env whose cells to export")
     parser.add_argument("dst", help="the export folder, e.g. results/<env>")
     parser.add_argument("--methods", nargs="+", help="only these methods' cells (default: every method)")
+    parser.add_argument("--parts", nargs="+", choices=sorted(PARTS), default=list(PARTS),
+                        help="cells (-> meta_test_ref), ablation (-> along_meta_training); default: both")
     args = parser.parse_args(argv)
-    written = export_cells(args.suite_dir, args.env, args.dst, args.methods)
+    written = export_cells(args.suite_dir, args.env, args.dst, args.methods, args.parts)
     for path in written:
         print(path)
     print(f"{len(written)} cells exported to {args.dst}")
