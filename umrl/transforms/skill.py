@@ -30,7 +30,7 @@ class SkillTransform(TensorDictPrimer):
     Keyword Args:
         skill_key (NestedKey): where the one-hot skill [*B, K] float32 is written. Defaults to ``"skill"``.
         generators (sequence of torch.Generator, optional): one per equal group of consecutive env copies (a
-            multi-seed run: one per seed); a reset copy draws its skill from its group's generator, and only reset
+            multi-seed run: one per seed), on any device; a reset copy draws its skill from its group's generator, and only reset
             copies draw, so a group's skills never depend on the other groups. Defaults to ``None``: torch's global
             generator, for every copy at each reset (TorchRL's ``TensorDictPrimer``).
 
@@ -113,8 +113,9 @@ class SkillTransform(TensorDictPrimer):
         for group, (rows, generator) in enumerate(zip(mask.view(groups, -1), self._generators)):
             reset = rows.nonzero().squeeze(-1)
             if reset.numel():
-                index[reset + group * rows.numel()] = torch.randint(self.num_skills, (reset.numel(),),
-                                                                    generator=generator)
+                # a generator draws on its own device (a CUDA run's are on the GPU, shared with the replay)
+                index[reset + group * rows.numel()] = torch.randint(
+                    self.num_skills, (reset.numel(),), generator=generator, device=generator.device).cpu()
         skill = torch.nn.functional.one_hot(index.view(batch), self.num_skills).float()
         tensordict_reset.set(self.skill_key, skill.to(tensordict_reset.device))
         return tensordict_reset
