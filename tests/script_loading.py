@@ -1,6 +1,7 @@
 """Helpers for tests of the Hydra scripts in benchmarks/ and recipes/: import a script, compose its config (the
 trainers' configs compose from the library: ``from umrl.trainers import compose``), kill a running one."""
 import importlib.util
+import os
 import signal
 import subprocess
 import sys
@@ -14,6 +15,14 @@ from umrl.configs.env_groups import with_env_group
 from umrl.trainers import config_dir
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+def repo_env(**extra: str) -> dict[str, str]:
+    """This process's environment for a subprocess that imports umrl from ``REPO``: ``REPO`` first on
+    ``PYTHONPATH``, the entries already there kept (a machine whose packages come from ``PYTHONPATH``), plus
+    ``extra``."""
+    path = os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH", "")) if p)
+    return {**os.environ, "PYTHONPATH": path, **extra}
 
 
 def load_script(relative_path: str):

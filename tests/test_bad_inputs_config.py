@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 from omegaconf import OmegaConf
+from script_loading import repo_env
 
 import umrl.configs.memory
 from umrl.configs import ConfigError, validate
@@ -196,7 +197,7 @@ def test_the_command_line_refuses_a_bad_output_dir_before_hydra_writes(tmp_path)
         OutputDirCheck().on_run_start(config=config, config_name="vime")
     proc = subprocess.run([sys.executable, str(REPO / "recipes" / "vime.py"), f"output_dir={afile / 'run'}"],
                           check=False, capture_output=True, text=True, timeout=120, cwd=tmp_path,
-                          env={**os.environ, "PYTHONPATH": str(REPO), "HYDRA_FULL_ERROR": "0"})
+                          env=repo_env(HYDRA_FULL_ERROR="0"))
     assert proc.returncode == 1
     assert f"output_dir: got '{afile / 'run'}' ({afile} is a file); expected a writable directory" in proc.stderr
     assert "NotADirectoryError" not in proc.stderr

@@ -8,7 +8,7 @@ import sys
 import pytest
 from omegaconf import OmegaConf
 from racing import FORK, run_racers
-from script_loading import REPO
+from script_loading import repo_env
 
 from umrl.configs.callbacks import OutputDirCheck
 from umrl.folder_lock import FolderLock
@@ -126,7 +126,7 @@ TINY_MAML = ["+profile=maml_tiny", "proposal=random", "iterations=1", "meta_batc
 
 
 def umrl_command(cwd, *args):
-    env = {**os.environ, "PYTHONPATH": str(REPO), "HYDRA_FULL_ERROR": "0"}
+    env = repo_env(HYDRA_FULL_ERROR="0")
     out = subprocess.run([sys.executable, "-m", "umrl", *args], capture_output=True, text=True, timeout=600,
                          check=False, cwd=cwd, env=env)
     assert out.returncode == 0, out.stderr[-2000:]

@@ -9,7 +9,7 @@ import time
 
 import pytest
 from omegaconf import OmegaConf
-from script_loading import REPO
+from script_loading import REPO, repo_env
 
 from umrl.configs import ConfigError
 from umrl.configs.callbacks import OutputDirCheck
@@ -71,7 +71,7 @@ def test_the_command_line_refuses_a_folder_in_use_before_hydra_writes(tmp_path):
     with FolderLock(tmp_path):
         proc = subprocess.run([sys.executable, str(REPO / "recipes" / "maml.py"), f"output_dir={tmp_path}",
                                "logger.backend=none"], check=False, capture_output=True, text=True, timeout=120,
-                              cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(REPO), "HYDRA_FULL_ERROR": "0"})
+                              cwd=tmp_path, env=repo_env(HYDRA_FULL_ERROR="0"))
     assert proc.returncode == 1, proc.stderr
     assert f"output_dir {tmp_path} is in use by pid {os.getpid()} on " in proc.stderr
     assert "Traceback" not in proc.stderr

@@ -8,7 +8,7 @@ import sys
 
 import numpy as np
 import pytest
-from script_loading import REPO, compose_config
+from script_loading import REPO, compose_config, repo_env
 from wandb_offline import offline_runs, run_id, sync_dry_run
 
 import umrl.trainers
@@ -65,7 +65,7 @@ def test_hydra_multirun_logs_each_job_to_its_own_run(tmp_path, offline_wandb):
     command = [sys.executable, str(REPO / "recipes" / "maml.py"), "-m", "seed=0,1", "iterations=1", *TINY,
                f"output_dir={tmp_path}/seed${{seed}}", f"hydra.sweep.dir={sweep}"]
     out = subprocess.run(command, check=False, capture_output=True, text=True, timeout=600, cwd=tmp_path,
-                         env={**os.environ, "PYTHONPATH": str(REPO)})
+                         env=repo_env())
     assert out.returncode == 0, out.stderr[-2000:]
     runs = _by_seed(offline_runs(offline_wandb))
     assert sorted(runs) == [0, 1]
