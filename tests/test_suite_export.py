@@ -57,7 +57,7 @@ def test_export_of_the_ablation_alone(suite, tmp_path):
     main([str(s), "pn", str(tmp_path / "out"), "--parts", "ablation"])
     assert sorted(p.relative_to(tmp_path / "out").as_posix() for p in (tmp_path / "out").rglob("*.csv")) == [
         "along_meta_training/seed0/oracle/iter20.csv", "along_meta_training/seed0/scratch.csv"]
-    with pytest.raises(ValueError, match=r"parts=\['cell'\]; accepted: one or more of \['ablation', 'cells'\]"):
+    with pytest.raises(ValueError, match=r"parts: got \['cell'\]; expected one or more of \['ablation', 'cells'\]"):
         export_cells(s, "pn", tmp_path / "out2", parts=["cell"])
 
 

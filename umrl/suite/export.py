@@ -71,7 +71,7 @@ def export_cells(suite_dir: str | Path, env: str, dst: str | Path, methods: Iter
     suite_dir, dst, parts = Path(suite_dir), Path(dst), list(parts)
     unknown = [part for part in parts if part not in PARTS]
     if unknown or not parts:
-        raise ValueError(f"export: parts={parts}; accepted: one or more of {sorted(PARTS)}")
+        raise ValueError(f"parts: got {parts}; expected one or more of {sorted(PARTS)}")
     wanted = None if methods is None else set(methods)
     plan: dict[Path, Path] = {}
     for csv in sorted(path for part in parts for path in suite_dir.glob(f"{part}/{env}/**/*.csv")):
