@@ -114,8 +114,8 @@ class SkillTransform(TensorDictPrimer):
             reset = rows.nonzero().squeeze(-1)
             if reset.numel():
                 # a generator draws on its own device (a CUDA run's are on the GPU, shared with the replay)
-                index[reset + group * rows.numel()] = torch.randint(
-                    self.num_skills, (reset.numel(),), generator=generator, device=generator.device).cpu()
+                draw = torch.randint(self.num_skills, (reset.numel(),), generator=generator, device=generator.device)
+                index[reset + group * rows.numel()] = draw.cpu()
         skill = torch.nn.functional.one_hot(index.view(batch), self.num_skills).float()
         tensordict_reset.set(self.skill_key, skill.to(tensordict_reset.device))
         return tensordict_reset
