@@ -16,8 +16,8 @@ Command::
 
 ``--parts ablation`` exports only the ablation's cells (a suite run for them alone keeps its main cells cheap, at
 ``protocol.num_steps=1``, and those must not overwrite the real ones). Only finished cells (a ``.json`` beside the
-CSV) are exported; two cells with one name and different keys (a
-folder holding runs of two configs or code versions) are refused, naming both, before anything is copied.
+CSV) are exported; two cells with one name and different keys (a folder holding runs of two configs or code
+versions) are refused, naming both, before anything is copied.
 """
 from __future__ import annotations
 

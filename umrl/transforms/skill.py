@@ -30,9 +30,9 @@ class SkillTransform(TensorDictPrimer):
     Keyword Args:
         skill_key (NestedKey): where the one-hot skill [*B, K] float32 is written. Defaults to ``"skill"``.
         generators (sequence of torch.Generator, optional): one per equal group of consecutive env copies (a
-            multi-seed run: one per seed), on any device; a reset copy draws its skill from its group's generator, and only reset
-            copies draw, so a group's skills never depend on the other groups. Defaults to ``None``: torch's global
-            generator, for every copy at each reset (TorchRL's ``TensorDictPrimer``).
+            multi-seed run: one per seed), on any device; a reset copy draws its skill from its group's generator,
+            and only reset copies draw, so a group's skills never depend on the other groups. Defaults to ``None``:
+            torch's global generator, for every copy at each reset (TorchRL's ``TensorDictPrimer``).
 
     Examples:
         >>> from umrl.envs import make_env
